@@ -1,0 +1,40 @@
+# torchrl_causal: two commands do all the set-up on a fresh machine.
+#   make train  -> creates .venv, installs, runs the default recipe, writes plots and tables
+#   make test   -> creates .venv, installs, runs the test suite
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+export YOLO_OFFLINE ?= 1
+export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
+PYTEST_WORKERS ?= 2
+
+.PHONY: venv train test docs bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	# ultralytics needs torchvision; the CPU torch file on disk cannot load PyPI's
+	# torchvision, so torch and torchvision are installed as a matched pair first.
+	$(PIP) install -q "torch==2.14.1" "torchvision==0.29.1"
+	$(PIP) install -q -e ".[dev]"
+	touch $@
+
+venv: $(VENV)/.installed
+
+train: venv
+	$(PY) recipes/train.py
+
+test: venv
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 tests
+
+docs: venv
+	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
+
+bench: venv
+	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) docs/_build outputs .pytest_cache
