@@ -1,0 +1,13 @@
+"""torchrl_causal: TorchRL components for causal RL in visual drone navigation.
+
+Subpackages:
+    * :mod:`torchrl_causal.schema` -- the nine discretised scene variables, action names.
+    * :mod:`torchrl_causal.envs` -- ``DroneNavEnv`` (MuJoCo) and layouts.
+    * :mod:`torchrl_causal.perception` -- goal detectors and the goal measurement.
+    * :mod:`torchrl_causal.transforms` -- the feature transforms (``causal_state``).
+    * :mod:`torchrl_causal.causal` -- expert CBNs, structure learning, compiled inference.
+    * :mod:`torchrl_causal.modules` -- the thesis Q-network and the CBN gate.
+    * :mod:`torchrl_causal.data` -- the replay-buffer hook that feeds causal learning.
+"""
+
+__version__ = "0.1.0"
