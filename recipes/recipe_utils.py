@@ -1,0 +1,288 @@
+"""Plumbing shared by the training recipe and ``reproduce.py``.
+
+Nothing here is method logic: the environment, features, Q-network, gate,
+causal learner and replay-buffer hook all come from :mod:`torchrl_causal`.
+This module only holds what a training *script* needs around them:
+
+* :data:`VARIANTS` -- the five paper variants and what each one switches on;
+* :func:`validate_config` -- every bad option is rejected with a
+  ``ValueError`` naming it, before anything heavy is built;
+* :func:`prepare_run_dir` -- the run-folder layout (:data:`RUN_LAYOUT`);
+* :class:`EpisodeCSV` -- the per-episode CSV, truncated on resume;
+* :func:`rng_state` / :func:`set_rng_state` and :func:`atomic_save` --
+  checkpoint helpers.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import random
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+__all__ = [
+    "Variant",
+    "VARIANTS",
+    "GATE_MODES",
+    "LOGGER_BACKENDS",
+    "RUN_LAYOUT",
+    "validate_config",
+    "check_writable",
+    "gate_mode",
+    "prepare_run_dir",
+    "EpisodeCSV",
+    "rng_state",
+    "set_rng_state",
+    "atomic_save",
+]
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What a paper variant switches on.
+
+    Args:
+        name: the variant's name (also its config file name).
+        features: concatenate the nine causal features before the dense layer
+            (thesis Fig. 5.2) instead of the image-only network (Fig. 5.1).
+        causal_mode: ``None`` (no CBN), ``"learned"`` or ``"defined"``
+            (expert structures, CPTs fitted from data).
+        default_gate: the gate algorithm the variant uses by default.
+        label: the legend label used in the thesis's Fig. 5.4.
+    """
+
+    name: str
+    features: bool
+    causal_mode: str | None
+    default_gate: str | None
+    label: str
+
+
+#: The five variants of thesis sec. 5.2 / Fig. 5.4.
+VARIANTS: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("dqn_image", False, None, None, "DQN (image only)"),
+        Variant("cbn_defined", True, "defined", "v2", "DQN + defined CBN"),
+        Variant("cbn_p", True, "learned", "p", "CBN-DQN P"),
+        Variant("cbn_pn", True, "learned", "pn", "CBN-DQN PN"),
+        Variant("cbn_v2", True, "learned", "v2", "CBN-DQN V2"),
+    )
+}
+GATE_MODES = ("p", "pn", "v2")
+LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
+
+#: Files and folders of a run folder, relative to it.
+RUN_LAYOUT = {
+    "config": "config.yaml",
+    "episodes": "episodes.csv",
+    "eval": "eval.csv",
+    "relearns": "relearns.csv",
+    "checkpoint": "checkpoints/last.pt",
+    "buffer": "checkpoints/buffer",
+    "logs": "logs",
+    "plots": "plots",
+    "tables": "tables",
+    "cbns": "cbns",
+    "model": "model.pt",
+    "summary": "summary.json",
+}
+
+
+def _get(cfg: Mapping, dotted: str, default: Any = None) -> Any:
+    node: Any = cfg
+    for part in dotted.split("."):
+        if node is None or part not in node:
+            return default
+        node = node[part]
+    return node
+
+
+def _require(cond: bool, option: str, value: Any, expected: str) -> None:
+    if not cond:
+        raise ValueError(f"Invalid option {option}={value!r}: expected {expected}.")
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Creates ``path`` if needed and proves a file can be written in it.
+
+    Raises:
+        ValueError: naming the option ``output_dir`` when it is not writable.
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write_probe_"):
+            pass
+    except OSError as err:
+        raise ValueError(
+            f"Invalid option output_dir={str(path)!r}: the folder cannot be written ({err})."
+        ) from None
+    return path
+
+
+def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
+    """Checks every option a run needs before anything is built.
+
+    Args:
+        cfg: the (hydra / OmegaConf or plain dict) run config.
+        output_dir: the run folder the config resolves to.
+
+    Returns:
+        The :class:`Variant` the config selects.
+
+    Raises:
+        ValueError: for an unknown variant or gate mode, ``causal.k <= 0``,
+            probabilities outside [0, 1], non-positive budgets, an unknown
+            logger, ``checkpoint.resume=true`` without a checkpoint, or an
+            unwritable output folder. The message names the option and value.
+    """
+    variant = _get(cfg, "variant")
+    _require(variant in VARIANTS, "variant", variant, f"one of {sorted(VARIANTS)}")
+    v = VARIANTS[variant]
+    for key in ("gate.prob_causal_model", "gate.threshold", "exploration.eps_init",
+                "exploration.eps_end", "loss.gamma"):
+        val = _get(cfg, key)
+        _require(
+            isinstance(val, (int, float)) and not isinstance(val, bool) and 0.0 <= val <= 1.0,
+            key, val, "a probability in [0, 1]",
+        )
+    k = _get(cfg, "causal.k")
+    _require(isinstance(k, int) and not isinstance(k, bool) and k > 0,
+             "causal.k", k, "an integer > 0 (frames between relearns)")
+    for key in ("collector.total_frames", "collector.frames_per_batch", "buffer.size",
+                "buffer.batch_size", "loss.target_update_interval",
+                "exploration.annealing_frames", "env.max_steps", "env.image_size"):
+        val = _get(cfg, key)
+        _require(isinstance(val, int) and not isinstance(val, bool) and val > 0,
+                 key, val, "an integer > 0")
+    for key in ("collector.init_random_frames", "loss.learning_starts",
+                "eval.interval_frames", "eval.episodes", "checkpoint.interval_frames",
+                "causal.warmup_frames"):
+        val = _get(cfg, key)
+        _require(isinstance(val, int) and not isinstance(val, bool) and val >= 0,
+                 key, val, "an integer >= 0")
+    upf = _get(cfg, "loss.updates_per_frame")
+    _require(isinstance(upf, (int, float)) and upf >= 0, "loss.updates_per_frame", upf,
+             "a number >= 0")
+    lr = _get(cfg, "optim.lr")
+    _require(isinstance(lr, (int, float)) and lr > 0, "optim.lr", lr, "a number > 0")
+    gate_mode = _get(cfg, "gate.mode")
+    _require(gate_mode is None or gate_mode in GATE_MODES, "gate.mode", gate_mode,
+             f"null or one of {GATE_MODES}")
+    episodes = _get(cfg, "collector.total_episodes")
+    _require(episodes is None or (isinstance(episodes, int) and episodes > 0),
+             "collector.total_episodes", episodes, "null or an integer > 0")
+    logger = _get(cfg, "logger.backend")
+    _require(logger in LOGGER_BACKENDS, "logger.backend", logger, f"one of {LOGGER_BACKENDS}")
+    stop = _get(cfg, "checkpoint.stop_after_frames")
+    _require(stop is None or (isinstance(stop, int) and stop > 0),
+             "checkpoint.stop_after_frames", stop, "null or an integer > 0")
+    out = check_writable(output_dir)
+    if _get(cfg, "checkpoint.resume"):
+        ckpt = out / RUN_LAYOUT["checkpoint"]
+        _require(ckpt.is_file(), "checkpoint.resume", True,
+                 f"an existing checkpoint, but {str(ckpt)!r} does not exist "
+                 "(point output_dir at the folder of the run to resume)")
+    return v
+
+
+def gate_mode(cfg: Mapping, variant: Variant) -> str | None:
+    """The gate algorithm of a run: ``gate.mode`` or, when null, the variant's own."""
+    if variant.causal_mode is None:
+        return None
+    return _get(cfg, "gate.mode") or variant.default_gate
+
+
+def prepare_run_dir(output_dir: str | os.PathLike) -> dict[str, Path]:
+    """Creates the run folder's sub-folders; returns :data:`RUN_LAYOUT` as absolute paths."""
+    root = Path(output_dir)
+    paths = {name: root / rel for name, rel in RUN_LAYOUT.items()}
+    for name in ("logs", "plots", "tables", "cbns"):
+        paths[name].mkdir(parents=True, exist_ok=True)
+    paths["checkpoint"].parent.mkdir(parents=True, exist_ok=True)
+    return paths
+
+
+class EpisodeCSV:
+    """Append-only CSV with a fixed header, flushed after every row.
+
+    On resume the file is cut back to the rows that existed when the
+    checkpoint was written (:meth:`truncate`), so rows written after the last
+    checkpoint by an interrupted run do not appear twice.
+
+    Args:
+        path: the CSV file.
+        columns: the header.
+    """
+
+    def __init__(self, path: str | os.PathLike, columns: Sequence[str]):
+        self.path = Path(path)
+        self.columns = list(columns)
+        self.n_rows = 0
+        if self.path.exists() and self.path.stat().st_size > 0:
+            with open(self.path, newline="") as f:
+                rows = list(csv.reader(f))
+            if rows and rows[0] != self.columns:
+                raise ValueError(
+                    f"{self.path} has columns {rows[0]}, expected {self.columns}"
+                )
+            self.n_rows = max(len(rows) - 1, 0)
+        else:
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self.columns)
+
+    def truncate(self, n_rows: int) -> None:
+        """Keeps the header and the first ``n_rows`` rows."""
+        with open(self.path, newline="") as f:
+            rows = list(csv.reader(f))
+        with open(self.path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(self.columns)
+            w.writerows(rows[1 : n_rows + 1])
+        self.n_rows = min(n_rows, max(len(rows) - 1, 0))
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        with open(self.path, "a", newline="") as f:
+            csv.writer(f).writerow([_fmt(row.get(c, "")) for c in self.columns])
+        self.n_rows += 1
+
+
+def _fmt(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        x = x.item()
+    if isinstance(x, (bool, np.bool_)):
+        return int(x)
+    if isinstance(x, float):
+        return f"{x:.6g}"
+    return x
+
+
+def rng_state() -> dict:
+    """The global RNG states of Python, NumPy and torch."""
+    return {
+        "python": random.getstate(),
+        "numpy": np.random.get_state(),
+        "torch": torch.get_rng_state(),
+    }
+
+
+def set_rng_state(state: Mapping) -> None:
+    """Restores what :func:`rng_state` returned."""
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+
+
+def atomic_save(obj: Any, path: str | os.PathLike) -> None:
+    """``torch.save`` to a temporary file, then rename: a kill never leaves half a file."""
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)

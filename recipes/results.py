@@ -1,0 +1,271 @@
+"""Plots and tables from run folders (thesis Fig. 5.3 / 5.4 and Table 5.1).
+
+Everything here reads the files a run writes (``episodes.csv``,
+``relearns.csv``, ``config.yaml``) so figures can be redrawn from finished runs
+without re-training:
+
+* :func:`moving_average` -- the thesis's smoothing (window 20 in Fig. 5.3,
+  50 in Fig. 5.4); the first ``window - 1`` episodes average what exists.
+* :func:`plot_reward_curves` -- one line per group (variant or k); with
+  several seeds, the mean of the smoothed curves and a band of +-1 standard
+  deviation across seeds.
+* :func:`edge_table` / :func:`table_markdown` -- Table 5.1: edges of the first
+  and last learned CBN in common with the defined (expert) one.
+* :func:`load_runs` -- finds run folders under a root and labels them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import yaml  # noqa: E402
+
+__all__ = [
+    "moving_average",
+    "load_episodes",
+    "load_runs",
+    "stack_curves",
+    "plot_reward_curves",
+    "plot_run",
+    "edge_set",
+    "edge_table",
+    "table_markdown",
+]
+
+
+def moving_average(x: Sequence[float], window: int) -> np.ndarray:
+    """Trailing moving average; the first values average the episodes seen so far."""
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window!r}")
+    return pd.Series(np.asarray(x, dtype=float)).rolling(window, min_periods=1).mean().to_numpy()
+
+
+def load_episodes(run_dir: str | Path) -> pd.DataFrame:
+    """The per-episode CSV of a run folder."""
+    return pd.read_csv(Path(run_dir) / "episodes.csv")
+
+
+def _read_config(run_dir: Path) -> dict:
+    path = run_dir / "config.yaml"
+    return yaml.safe_load(path.read_text()) if path.exists() else {}
+
+
+def load_runs(root: str | Path) -> list[dict]:
+    """Every run folder (one holding ``episodes.csv`` and ``config.yaml``) under ``root``.
+
+    Returns:
+        A list of ``{"dir", "variant", "seed", "k", "episodes", "relearns"}``
+        dicts, sorted by folder name.
+    """
+    runs = []
+    for csv_path in sorted(Path(root).rglob("episodes.csv")):
+        run_dir = csv_path.parent
+        cfg = _read_config(run_dir)
+        if not cfg:
+            continue
+        rel_path = run_dir / "relearns.csv"
+        relearns = pd.read_csv(rel_path) if rel_path.exists() else pd.DataFrame()
+        runs.append(
+            {
+                "dir": run_dir,
+                "variant": cfg.get("variant"),
+                "seed": cfg.get("seed"),
+                "k": (cfg.get("causal") or {}).get("k"),
+                "episodes": pd.read_csv(csv_path),
+                "relearns": relearns,
+            }
+        )
+    return runs
+
+
+def stack_curves(curves: Sequence[Sequence[float]]) -> np.ndarray:
+    """Stacks curves of different lengths into ``[n, max_len]``, padding with NaN."""
+    n = max((len(c) for c in curves), default=0)
+    out = np.full((len(curves), n), np.nan)
+    for i, c in enumerate(curves):
+        out[i, : len(c)] = c
+    return out
+
+
+def plot_reward_curves(
+    groups: Mapping[str, Sequence[Sequence[float]]],
+    window: int,
+    path: str | Path,
+    *,
+    title: str = "",
+    vlines: Mapping[str, Sequence[float]] | None = None,
+    ylabel: str = "episode reward",
+) -> Path:
+    """Draws smoothed episode-reward curves, one line (mean over seeds) per group.
+
+    Args:
+        groups: label -> list of per-seed reward sequences (one value per episode).
+        window: moving-average window (thesis: 20 for Fig. 5.3, 50 for Fig. 5.4).
+        path: the PNG file to write.
+        title: figure title.
+        vlines: label -> episodes to mark with dashed vertical lines (e.g. the
+            episodes at which a CBN was (re)learned, as in Fig. 5.3); only the
+            first few are drawn per group to keep the figure readable.
+        ylabel: y axis label.
+
+    Returns:
+        ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (label, seeds) in enumerate(groups.items()):
+        seeds = [s for s in seeds if len(s)]
+        if not seeds:
+            continue
+        color = colors[i % len(colors)]
+        smooth = stack_curves([moving_average(s, window) for s in seeds])
+        with np.errstate(invalid="ignore"):
+            mean = np.nanmean(smooth, axis=0)
+            std = np.nanstd(smooth, axis=0)
+        x = np.arange(1, len(mean) + 1)
+        n = len(seeds)
+        ax.plot(x, mean, color=color, label=f"{label} (n={n})" if n > 1 else label)
+        if n > 1:
+            ax.fill_between(x, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
+        for ep in list((vlines or {}).get(label, []))[:10]:
+            ax.axvline(ep, color=color, linestyle="--", linewidth=0.8, alpha=0.6)
+    ax.set_xlabel("episode")
+    ax.set_ylabel(f"{ylabel} (moving average {window})")
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _relearn_episodes(relearns: pd.DataFrame) -> list[float]:
+    if relearns is None or relearns.empty or "episode" not in relearns:
+        return []
+    return relearns["episode"].astype(float).tolist()
+
+
+def plot_run(run_dir: str | Path, label: str | None = None) -> list[Path]:
+    """Fig. 5.3-style (window 20, relearn lines) and Fig. 5.4-style (window 50) plots of one run.
+
+    Returns:
+        The PNG paths written under ``<run_dir>/plots``.
+    """
+    run_dir = Path(run_dir)
+    cfg = _read_config(run_dir)
+    label = label or str(cfg.get("variant", run_dir.name))
+    eps = load_episodes(run_dir)
+    rel_path = run_dir / "relearns.csv"
+    rel = pd.read_csv(rel_path) if rel_path.exists() else None
+    rewards = eps["reward"].tolist()
+    out = [
+        plot_reward_curves(
+            {label: [rewards]}, 20, run_dir / "plots" / "reward_ma20.png",
+            title=f"{label}: episode reward (cf. thesis Fig. 5.3)",
+            vlines={label: _relearn_episodes(rel)},
+        ),
+        plot_reward_curves(
+            {label: [rewards]}, 50, run_dir / "plots" / "reward_ma50.png",
+            title=f"{label}: episode reward (cf. thesis Fig. 5.4)",
+        ),
+    ]
+    if "success" in eps:
+        out.append(
+            plot_reward_curves(
+                {label: [eps["success"].astype(float).tolist()]}, 50,
+                run_dir / "plots" / "success_ma50.png",
+                title=f"{label}: success rate", ylabel="success",
+            )
+        )
+    return out
+
+
+def edge_set(dag) -> set[tuple[str, str]]:
+    """Directed edges of a DAG given as a networkx/pgmpy graph or an iterable of pairs."""
+    edges = dag.edges() if hasattr(dag, "edges") else dag
+    return {(str(u), str(v)) for u, v in edges}
+
+
+def edge_table(
+    expert: Mapping[str, object],
+    first: Mapping[str, object],
+    last: Mapping[str, object],
+    actions: Iterable[str] | None = None,
+) -> list[dict]:
+    """Rows of thesis Table 5.1 for each action.
+
+    Args:
+        expert: action name -> defined (expert) DAG.
+        first: action name -> first learned DAG.
+        last: action name -> last learned DAG.
+        actions: row order (default: ``expert``'s keys).
+
+    Returns:
+        One dict per action with the defined edge total, edges in common with
+        the first / last learned network and their totals, and the thesis's
+        "similarity": edges in common with the last network / defined total.
+    """
+    rows = []
+    for a in actions if actions is not None else expert:
+        e, f, l_ = edge_set(expert[a]), edge_set(first.get(a, ())), edge_set(last.get(a, ()))
+        rows.append(
+            {
+                "action": a,
+                "defined_edges": len(e),
+                "first_common": len(e & f),
+                "first_edges": len(f),
+                "last_common": len(e & l_),
+                "last_edges": len(l_),
+                "similarity_first": len(e & f) / len(e) if e else float("nan"),
+                "similarity_last": len(e & l_) / len(e) if e else float("nan"),
+            }
+        )
+    return rows
+
+
+def table_markdown(rows: Sequence[Mapping], title: str = "") -> str:
+    """Renders :func:`edge_table` rows as a Markdown table (thesis Table 5.1 layout)."""
+    lines = [f"### {title}", ""] if title else []
+    lines += [
+        "| Action | Edges in defined CBN | Common with first learned / its edges "
+        "| Common with last learned / its edges | Similarity (last common / defined) |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['action']} | {r['defined_edges']} | {r['first_common']}/{r['first_edges']} "
+            f"| {r['last_common']}/{r['last_edges']} | {r['similarity_last']:.3f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def summary_markdown(rows: Sequence[Mapping], columns: Sequence[str], title: str = "") -> str:
+    """A plain Markdown table of ``rows`` (dicts) restricted to ``columns``."""
+    lines = [f"### {title}", ""] if title else []
+    lines.append("| " + " | ".join(columns) + " |")
+    lines.append("|" + "---|" * len(columns))
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c, "")
+            cells.append(f"{v:.3f}" if isinstance(v, float) else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_json(obj, path: str | Path) -> Path:
+    path = Path(path)
+    path.write_text(json.dumps(obj, indent=2, default=str))
+    return path

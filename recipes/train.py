@@ -1,0 +1,527 @@
+"""Train one paper variant (thesis sec. 5.2) with TorchRL: ``python recipes/train.py``.
+
+The default config is ``cbn_v2`` (CBN-DQN V2, k = 200) on the thesis scene with
+a short budget; pick another variant with ``--config-name``::
+
+    python recipes/train.py                                   # cbn_v2, short budget
+    python recipes/train.py --config-name dqn_image seed=3
+    python recipes/train.py -m --config-name cbn_v2 seed=0,1,2 causal.k=100,200,400,600
+    python recipes/train.py output_dir=outputs/cbn_v2/<run> checkpoint.resume=true
+
+The script composes library parts only: :class:`torchrl_causal.envs.DroneNavEnv`
+with :func:`torchrl_causal.transforms.make_causal_transforms`,
+:class:`torchrl_causal.modules.ThesisQNet` in a :class:`torchrl.modules.QValueActor`,
+:class:`torchrl_causal.modules.CBNGate` (or :class:`torchrl.modules.EGreedyModule`
+for the image-only DQN), a :class:`torchrl.data.TensorDictReplayBuffer` whose
+transform is :class:`torchrl_causal.data.CausalLearningHook`, TorchRL's
+:class:`~torchrl.collectors.Collector`, :class:`~torchrl.objectives.DQNLoss` and
+:class:`~torchrl.objectives.HardUpdate`. See ``docs/recipes.rst``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import recipe_utils as ru  # noqa: E402
+import results  # noqa: E402
+
+CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
+
+#: Keys kept in the replay buffer (pixels stay uint8); everything else is dropped.
+STORE_KEYS = ("pixels", "action", ("next", "pixels"), ("next", "reward"),
+              ("next", "done"), ("next", "terminated"))
+CAUSAL_STORE_KEYS = ("causal_state", ("next", "causal_state"))
+
+
+# --------------------------------------------------------------------------- build
+def build_env(cfg: DictConfig, variant: ru.Variant, layout: str, device: str):
+    """DroneNavEnv on ``layout`` (+ the causal feature stack for CBN variants)."""
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_causal.envs import DroneNavEnv
+
+    env = DroneNavEnv(
+        layout=layout,
+        image_size=cfg.env.image_size,
+        max_steps=cfg.env.max_steps,
+        device=device,
+        **OmegaConf.to_container(cfg.env.options, resolve=True),
+    )
+    if variant.features:
+        from torchrl_causal.transforms import make_causal_transforms
+
+        env = TransformedEnv(
+            env, make_causal_transforms(env, **OmegaConf.to_container(cfg.features.options))
+        )
+    return env
+
+
+def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
+    """Actor, explorer (gate or epsilon-greedy), policy, causal hook (or None)."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.modules import EGreedyModule, QValueActor
+
+    from torchrl_causal.modules import CBNGate, ThesisQNet
+
+    n_actions = env.action_spec.space.n
+    net = ThesisQNet(
+        n_actions,
+        n_features=9 if variant.features else 0,
+        image_size=(cfg.env.image_size, cfg.env.image_size),
+        device=device,
+    )
+    in_keys = ["pixels", "causal_state"] if variant.features else ["pixels"]
+    actor = QValueActor(net, in_keys=in_keys, spec=env.action_spec)
+    hook = None
+    if variant.causal_mode is None:
+        explorer = EGreedyModule(
+            env.action_spec,
+            eps_init=cfg.exploration.eps_init,
+            eps_end=cfg.exploration.eps_end,
+            annealing_num_steps=cfg.exploration.annealing_frames,
+        )
+    else:
+        from torchrl_causal.causal import CausalLearner
+        from torchrl_causal.data import CausalLearningHook
+
+        explorer = CBNGate(
+            ru.gate_mode(cfg, variant),
+            prob_causal_model=cfg.gate.prob_causal_model,
+            threshold=cfg.gate.threshold,
+            eps_init=cfg.exploration.eps_init,
+            eps_end=cfg.exploration.eps_end,
+            annealing_num_steps=cfg.exploration.annealing_frames,
+            seed=cfg.seed,
+            device=device,
+        )
+        learner = CausalLearner(
+            n_actions=n_actions,
+            mode=variant.causal_mode,
+            backend=cfg.causal.backend,
+            **OmegaConf.to_container(cfg.causal.options, resolve=True),
+        )
+        hook = CausalLearningHook(
+            learner, k=cfg.causal.k, gates=[explorer], background=cfg.causal.background
+        )
+    policy = TensorDictSequential(actor, explorer)
+    return actor, explorer, policy, hook
+
+
+def build_buffer(cfg: DictConfig, hook, scratch: Path):
+    """Replay memory: RAM storage, or a memmap on disk above ``buffer.memmap_above``."""
+    from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+
+    if cfg.buffer.size > cfg.buffer.memmap_above:
+        storage = LazyMemmapStorage(cfg.buffer.size, scratch_dir=cfg.buffer.scratch_dir or scratch)
+    else:
+        storage = LazyTensorStorage(cfg.buffer.size)
+    rb = TensorDictReplayBuffer(storage=storage, batch_size=cfg.buffer.batch_size)
+    if hook is not None:
+        rb.append_transform(hook)
+    return rb
+
+
+def make_logger(cfg: DictConfig, log_dir: Path, state: dict | None):
+    if cfg.logger.backend == "none":
+        return None
+    from torchrl.record.loggers import get_logger
+
+    kwargs = {}
+    if cfg.logger.backend == "wandb":
+        kwargs["wandb_kwargs"] = {"project": cfg.logger.project, "dir": str(log_dir)}
+    try:
+        return get_logger(cfg.logger.backend, str(log_dir), cfg.variant, state_dict=state, **kwargs)
+    except ImportError as err:
+        raise ValueError(
+            f"Invalid option logger.backend={cfg.logger.backend!r}: its package is not "
+            f"installed ({err}); use logger.backend=csv"
+        ) from None
+
+
+# --------------------------------------------------------------------------- loop pieces
+class EpisodeTracker:
+    """Per-env running sums turned into one CSV row per finished episode."""
+
+    def __init__(self, gate_keys: list[str]):
+        self.gate_keys = gate_keys
+        self.reset()
+
+    def reset(self):
+        self.reward, self.length = 0.0, 0
+        self.gate = {k: 0.0 for k in self.gate_keys}
+
+    def state_dict(self):
+        return {"reward": self.reward, "length": self.length, "gate": dict(self.gate)}
+
+    def load_state_dict(self, sd):
+        self.reward, self.length, self.gate = sd["reward"], sd["length"], dict(sd["gate"])
+
+
+def _flag(td, key) -> bool:
+    val = td.get(key, None)
+    return bool(val.any()) if val is not None else False
+
+
+@torch.no_grad()
+def evaluate(policy, env, episodes: int, seed: int) -> dict:
+    """Greedy episodes (epsilon 0; the gate still applies): success rate, reward, collisions."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    env.set_seed(seed)
+    rewards, successes, crashes, lengths = [], [], [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(episodes):
+            td = env.rollout(env_max_steps(env), policy, break_when_any_done=True)
+            nxt = td["next"]
+            rewards.append(float(nxt["reward"].sum()))
+            lengths.append(td.numel())
+            successes.append(_flag(nxt, "reached"))
+            crashes.append(_flag(nxt, "crashed"))
+    return {
+        "success_rate": float(np.mean(successes)),
+        "mean_reward": float(np.mean(rewards)),
+        "collisions": int(np.sum(crashes)),
+        "mean_length": float(np.mean(lengths)),
+    }
+
+
+def env_max_steps(env) -> int:
+    base = getattr(env, "base_env", env)
+    return int(getattr(base, "max_steps", 200))
+
+
+# --------------------------------------------------------------------------- train
+def resolve_output_dir(cfg: DictConfig) -> Path:
+    if cfg.get("output_dir"):
+        return Path(cfg.output_dir).expanduser().resolve()
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir).resolve()
+    raise ValueError("Invalid option output_dir=None: give a run folder when not run by hydra.")
+
+
+def train(cfg: DictConfig) -> dict:
+    """Runs (or resumes) one training run and writes its run folder.
+
+    Args:
+        cfg: a config composed from ``recipes/config`` (hydra or
+            :func:`hydra.compose`).
+
+    Returns:
+        The run summary (also written to ``summary.json``).
+    """
+    out = resolve_output_dir(cfg)
+    variant = ru.validate_config(cfg, out)  # every bad option fails here, before any build
+    cfg_plain = OmegaConf.to_container(cfg, resolve=False)
+    cfg_plain.pop("hydra", None)
+    paths = ru.prepare_run_dir(out)
+    resume = bool(cfg.checkpoint.resume)
+    if not resume:
+        paths["config"].write_text(OmegaConf.to_yaml(OmegaConf.create(cfg_plain)))
+
+    from torchrl.collectors import Collector
+    from torchrl.objectives import DQNLoss, HardUpdate
+
+    device = cfg.device
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    import random
+
+    random.seed(cfg.seed)
+
+    env = build_env(cfg, variant, cfg.env.layout, device)
+    actor, explorer, policy, hook = build_agent(cfg, variant, env, device)
+    rb = build_buffer(cfg, hook, paths["buffer"].parent / "buffer_storage")
+    loss = DQNLoss(actor, loss_function="l2", delay_value=True, action_space=env.action_spec)
+    loss.make_value_estimator(gamma=cfg.loss.gamma)
+    optim = torch.optim.RMSprop(
+        loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps, alpha=cfg.optim.alpha
+    )
+    updater = HardUpdate(loss, value_network_update_interval=cfg.loss.target_update_interval)
+
+    init_random = cfg.collector.init_random_frames
+    if variant.causal_mode == "defined":
+        init_random += cfg.causal.warmup_frames  # counted in the frame budget
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=cfg.collector.frames_per_batch,
+        total_frames=-1,
+        init_random_frames=init_random or None,
+        device=device,
+    )
+    store_keys = list(STORE_KEYS) + (list(CAUSAL_STORE_KEYS) if variant.features else [])
+    gate_keys = (
+        ["gate_explored", "gate_consulted", "gate_vetoed", "gate_replaced"]
+        if variant.causal_mode
+        else []
+    )
+    ep_csv = ru.EpisodeCSV(
+        paths["episodes"],
+        ["episode", "frames", "reward", "length", "success", "crash", "epsilon", "n_relearns"]
+        + [k.replace("gate_", "gate_frac_") for k in gate_keys],
+    )
+    eval_csv = ru.EpisodeCSV(
+        paths["eval"],
+        ["frames", "episodes", "layout", "success_rate", "mean_reward", "collisions",
+         "mean_length"],
+    )
+    rel_csv = ru.EpisodeCSV(paths["relearns"], ["relearn", "frames", "episode"])
+    eval_envs = {lay: None for lay in cfg.env.eval_layouts}
+
+    # ---- state of the loop (all of it is checkpointed)
+    st = {
+        "frames": 0, "episodes": 0, "updates": 0, "update_budget": 0.0,
+        "next_eval": cfg.eval.interval_frames or math.inf,
+        "next_ckpt": cfg.checkpoint.interval_frames or math.inf,
+        "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
+        "time_causal": 0.0, "time_train": 0.0,
+    }
+    tracker = EpisodeTracker(gate_keys)
+    logger_state = None
+
+    def restart_collector():
+        # Checkpoints fall on episode ends. Right after one (in the uninterrupted
+        # run as in the resumed one) the env is reseeded and reset, so both runs
+        # continue from the same state: see docs/recipes.rst, "Resume".
+        collector.set_seed(int(cfg.seed) * 7919 + 104729 * st["n_ckpt"])
+        collector.reset()
+
+    def state_dict() -> dict:
+        rb.dumps(paths["buffer"])
+        return {
+            "loop": dict(st),
+            "tracker": tracker.state_dict(),
+            "loss": loss.state_dict(),
+            "optim": optim.state_dict(),
+            "updater_counter": updater.counter,
+            "explorer": explorer.state_dict(),
+            "hook": hook.state_dict() if hook is not None else None,
+            "collector": {k: v for k, v in collector.state_dict().items()
+                          if k in ("frames", "iter", "traj_pool")},
+            "logger": logger.state_dict() if logger is not None else None,
+            "rows": {"episodes": ep_csv.n_rows, "eval": eval_csv.n_rows,
+                     "relearns": rel_csv.n_rows},
+            "rng": ru.rng_state(),
+        }
+
+    if resume:
+        ckpt = torch.load(paths["checkpoint"], weights_only=False)
+        st.update(ckpt["loop"])
+        tracker.load_state_dict(ckpt["tracker"])
+        loss.load_state_dict(ckpt["loss"])
+        optim.load_state_dict(ckpt["optim"])
+        updater.counter = ckpt["updater_counter"]
+        explorer.load_state_dict(ckpt["explorer"])
+        rb.loads(paths["buffer"])
+        if hook is not None:
+            hook.load_state_dict(ckpt["hook"])
+        collector._frames = ckpt["collector"]["frames"]
+        collector._iter = ckpt["collector"]["iter"]
+        ep_csv.truncate(ckpt["rows"]["episodes"])
+        eval_csv.truncate(ckpt["rows"]["eval"])
+        rel_csv.truncate(ckpt["rows"]["relearns"])
+        logger_state = ckpt["logger"]
+        ru.set_rng_state(ckpt["rng"])
+        restart_collector()
+    logger = make_logger(cfg, paths["logs"], logger_state)
+
+    total_frames = cfg.collector.total_frames
+    total_episodes = cfg.collector.total_episodes or math.inf
+    stop_after = cfg.checkpoint.stop_after_frames
+    pbar = None
+    if cfg.progress:
+        from tqdm import tqdm
+
+        pbar = tqdm(total=total_frames, initial=st["frames"], desc=cfg.variant,
+                    unit="frame", dynamic_ncols=True, mininterval=1.0)
+    stopped_early = False
+    t_start = time.perf_counter()
+    last_reward = float("nan")
+
+    for batch in collector:
+        batch = batch.reshape(-1)
+        n = batch.numel()
+        st["frames"] += n
+        explorer.step(n)
+        t0 = time.perf_counter()
+        rb.extend(batch.select(*store_keys).clone())
+        st["time_causal"] += time.perf_counter() - t0 if hook is not None else 0.0
+        if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
+            st["n_relearns"] = hook.learner.n_relearns
+            rel_csv.write({"relearn": st["n_relearns"], "frames": st["frames"],
+                           "episode": st["episodes"] + 1})
+        # ---- episodes
+        nxt = batch["next"]
+        done = nxt["done"].reshape(n)
+        for i in range(n):
+            tracker.reward += float(nxt["reward"][i])
+            tracker.length += 1
+            for k in gate_keys:
+                tracker.gate[k] += float(batch[k][i])
+            if done[i]:
+                st["episodes"] += 1
+                success = bool(nxt["reached"][i].any())
+                st["successes"] = (st["successes"] + [int(success)])[-50:]
+                row = {
+                    "episode": st["episodes"], "frames": st["frames"] - (n - 1 - i),
+                    "reward": tracker.reward, "length": tracker.length,
+                    "success": success, "crash": bool(nxt["crashed"][i].any()),
+                    "epsilon": float(explorer.eps), "n_relearns": st["n_relearns"],
+                }
+                for k in gate_keys:
+                    row[k.replace("gate_", "gate_frac_")] = tracker.gate[k] / tracker.length
+                ep_csv.write(row)
+                last_reward = tracker.reward
+                if logger is not None:
+                    logger.log_scalar("train/episode_reward", tracker.reward, step=st["frames"])
+                    logger.log_scalar("train/success", float(success), step=st["frames"])
+                tracker.reset()
+        # ---- optimisation
+        t0 = time.perf_counter()
+        if len(rb) >= max(cfg.loss.learning_starts, cfg.buffer.batch_size):
+            st["update_budget"] += n * cfg.loss.updates_per_frame
+            while st["update_budget"] >= 1.0:
+                st["update_budget"] -= 1.0
+                sample = rb.sample()
+                loss_td = loss(sample)
+                loss_td["loss"].backward()
+                torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.loss.max_grad_norm)
+                optim.step()
+                optim.zero_grad(set_to_none=True)
+                updater.step()
+                st["updates"] += 1
+                if logger is not None and st["updates"] % 100 == 0:
+                    logger.log_scalar("train/loss", float(loss_td["loss"]), step=st["frames"])
+        st["time_train"] += time.perf_counter() - t0
+        if pbar is not None:
+            pbar.update(n)
+            sr = np.mean(st["successes"]) if st["successes"] else float("nan")
+            pbar.set_postfix(ep=st["episodes"], reward=f"{last_reward:.0f}",
+                             success=f"{sr:.2f}", eps=f"{float(explorer.eps):.2f}",
+                             refresh=False)
+        # ---- evaluation, checkpoint, stop
+        finished = st["frames"] >= total_frames or st["episodes"] >= total_episodes
+        if st["frames"] >= st["next_eval"] or finished:
+            _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device)
+            while st["next_eval"] <= st["frames"]:
+                st["next_eval"] += cfg.eval.interval_frames or math.inf
+        at_episode_end = bool(done[-1])
+        if (st["frames"] >= st["next_ckpt"] and at_episode_end) or finished:
+            st["n_ckpt"] += 1
+            while st["next_ckpt"] <= st["frames"]:
+                st["next_ckpt"] += cfg.checkpoint.interval_frames or math.inf
+            ru.atomic_save(state_dict(), paths["checkpoint"])
+            if not finished:
+                restart_collector()
+            if stop_after is not None and st["frames"] >= stop_after and not finished:
+                stopped_early = True
+                break
+        if finished:
+            break
+    if pbar is not None:
+        pbar.close()
+    collector.shutdown()
+    wall = time.perf_counter() - t_start
+
+    summary = {
+        "variant": cfg.variant, "seed": cfg.seed, "k": cfg.causal.k,
+        "frames": st["frames"], "episodes": st["episodes"], "updates": st["updates"],
+        "n_relearns": st["n_relearns"], "stopped_early": stopped_early,
+        "output_dir": str(out), "plots_dir": str(paths["plots"]),
+        "wall_time_s": wall,
+    }
+    if stopped_early:
+        print(f"Stopped after {st['frames']} frames (checkpoint.stop_after_frames); resume with "
+              f"output_dir={out} checkpoint.resume=true")
+        return summary
+    summary.update(write_outputs(cfg, variant, paths, actor, hook))
+    ru_json = paths["summary"]
+    ru_json.write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device):
+    if cfg.eval.episodes == 0:
+        return
+    st["n_evals"] += 1
+    for i, layout in enumerate(eval_envs):
+        if eval_envs[layout] is None:
+            eval_envs[layout] = build_env(cfg, variant, layout, device)
+        res = evaluate(policy, eval_envs[layout], cfg.eval.episodes,
+                       seed=int(cfg.seed) * 1009 + 31 * st["n_evals"] + i)
+        eval_csv.write({"frames": st["frames"], "episodes": st["episodes"], "layout": layout,
+                        **res})
+        if logger is not None:
+            for key, val in res.items():
+                logger.log_scalar(f"eval_{layout}/{key}", val, step=st["frames"])
+
+
+def write_outputs(cfg, variant, paths, actor, hook) -> dict:
+    """Final model, CBNs, plots and Table 5.1 into the run folder."""
+    out: dict[str, Any] = {}
+    torch.save(actor.state_dict(), paths["model"])
+    out["plots"] = [str(p) for p in results.plot_run(paths["model"].parent)]
+    if hook is not None and hook.learner.n_relearns > 0:
+        learner = hook.learner
+        learner.save(paths["cbns"] / "last")
+        from torchrl_causal.causal.expert import expert_dags
+        from torchrl_causal.schema import ACTION_NAMES
+
+        history = learner.history
+        first, last = _named_dags(history[0]), _named_dags(history[-1])
+        rows = results.edge_table(_named_dags(expert_dags()), first, last, ACTION_NAMES)
+        table = results.table_markdown(
+            rows, f"Table 5.1 ({cfg.variant}, seed {cfg.seed}): learned vs defined CBN edges")
+        (paths["tables"] / "table_5_1.md").write_text(table)
+        out["table_5_1"] = str(paths["tables"] / "table_5_1.md")
+        out["cbn_drawings"] = [str(p) for p in _draw_cbns(learner, paths["cbns"])]
+    return out
+
+
+def _named_dags(dags) -> dict:
+    from torchrl_causal.schema import ACTION_NAMES
+
+    if isinstance(dags, dict):
+        return {ACTION_NAMES[k] if isinstance(k, int) else k: v for k, v in dags.items()}
+    return {ACTION_NAMES[i]: d for i, d in enumerate(dags)}
+
+
+def _draw_cbns(learner, folder: Path) -> list[Path]:
+    from torchrl_causal.causal import draw_cbn  # library drawing of one DBN
+
+    paths = []
+    for name, dag in _named_dags(learner.dags()).items():
+        p = folder / f"last_{name}.png"
+        draw_cbn(dag, p, title=name)
+        paths.append(p)
+    return paths
+
+
+@hydra.main(version_base=None, config_path="config", config_name="cbn_v2")
+def main(cfg: DictConfig) -> None:
+    summary = train(cfg)
+    if not summary.get("stopped_early"):
+        print(f"Run folder: {summary['output_dir']}")
+        print(f"Plots: {summary['plots_dir']}")
+        if "table_5_1" in summary:
+            print(f"Table 5.1: {summary['table_5_1']}")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    main()
