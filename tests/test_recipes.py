@@ -1,0 +1,158 @@
+"""Recipe plumbing: config validation (bad input fails before training), run-folder
+CSV/plot/table helpers and the reproduce plan. Fast: no environment is built.
+End-to-end runs of every variant and the resume test are in test_recipes_smoke.py."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import recipe_utils as ru  # noqa: E402
+import reproduce  # noqa: E402
+import results  # noqa: E402
+import train  # noqa: E402
+
+
+def _cfg(name="cbn_v2", overrides=()):
+    with initialize_config_dir(config_dir=train.CONFIG_DIR, version_base=None):
+        return compose(config_name=name, overrides=list(overrides))
+
+
+@pytest.mark.parametrize("name", sorted(ru.VARIANTS))
+def test_every_variant_config_is_valid(name, tmp_path):
+    cfg = _cfg(name, [f"output_dir={tmp_path}"])
+    v = ru.validate_config(cfg, tmp_path)
+    assert v.name == name == cfg.variant
+    assert cfg.loss.gamma == 0.9 and cfg.optim.lr == 0.00025 and cfg.optim.eps == 1e-8
+    assert cfg.gate.prob_causal_model == 0.7 and cfg.gate.threshold == 0.75
+    assert cfg.causal.k == 200 and cfg.env.image_size == 84 and cfg.env.max_steps == 200
+    expected_gate = {"cbn_p": "p", "cbn_pn": "pn", "cbn_v2": "v2", "cbn_defined": "v2"}
+    assert ru.gate_mode(cfg, v) == expected_gate.get(name)
+
+
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("variant=cbn_q", "variant='cbn_q'"),
+        ("causal.k=0", "causal.k=0"),
+        ("causal.k=-5", "causal.k=-5"),
+        ("gate.threshold=1.5", "gate.threshold=1.5"),
+        ("gate.prob_causal_model=-0.1", "gate.prob_causal_model=-0.1"),
+        ("exploration.eps_end=2", "exploration.eps_end=2"),
+        ("gate.mode=pnx", "gate.mode='pnx'"),
+        ("collector.total_frames=0", "collector.total_frames=0"),
+        ("logger.backend=mlflowx", "logger.backend='mlflowx'"),
+        ("checkpoint.resume=true", "checkpoint.resume"),
+    ],
+)
+def test_bad_input_fails_before_training(override, needle, tmp_path):
+    out = tmp_path / "run"
+    cfg = _cfg("cbn_v2", [f"output_dir={out}", override])
+    with pytest.raises(ValueError, match="Invalid option") as err:
+        train.train(cfg)
+    assert needle in str(err.value)
+    # nothing of a run was written: the error came before any build
+    assert not (out / "config.yaml").exists() and not (out / "episodes.csv").exists()
+
+
+def test_unwritable_output_dir(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    cfg = _cfg("dqn_image", [f"output_dir={blocker / 'run'}"])
+    with pytest.raises(ValueError, match="output_dir=.*cannot be written"):
+        train.train(cfg)
+
+
+def test_cli_reports_bad_input_and_unknown_variant(tmp_path):
+    env = dict(os.environ, HYDRA_FULL_ERROR="1")
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "train.py"), "causal.k=0",
+         f"output_dir={tmp_path}"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert r.returncode != 0
+    assert "Invalid option causal.k=0" in r.stderr
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "recipes" / "train.py"), "--config-name", "cbn_x"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert r.returncode != 0 and "cbn_x" in r.stderr
+
+
+def test_episode_csv_truncates_on_resume(tmp_path):
+    path = tmp_path / "episodes.csv"
+    log = ru.EpisodeCSV(path, ["episode", "reward", "success"])
+    for i in range(5):
+        log.write({"episode": i + 1, "reward": float(i) * 1.5, "success": i % 2 == 0})
+    again = ru.EpisodeCSV(path, ["episode", "reward", "success"])
+    assert again.n_rows == 5
+    again.truncate(3)
+    again.write({"episode": 4, "reward": -9.0, "success": False})
+    df = pd.read_csv(path)
+    assert df["episode"].tolist() == [1, 2, 3, 4]
+    assert df["reward"].tolist() == [0.0, 1.5, 3.0, -9.0]
+    assert df["success"].tolist() == [1, 0, 1, 0]
+    with pytest.raises(ValueError, match="columns"):
+        ru.EpisodeCSV(path, ["episode", "other"])
+
+
+def test_rng_state_roundtrip():
+    import torch
+
+    state = ru.rng_state()
+    a = (torch.rand(3), np.random.rand(3))
+    ru.set_rng_state(state)
+    b = (torch.rand(3), np.random.rand(3))
+    assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_moving_average_and_seed_bands(tmp_path):
+    ma = results.moving_average([0, 10, 20, 30], 2)
+    np.testing.assert_allclose(ma, [0, 5, 15, 25])
+    stacked = results.stack_curves([[1, 2, 3], [4]])
+    assert stacked.shape == (2, 3) and np.isnan(stacked[1, 1])
+    rng = np.random.default_rng(0)
+    groups = {"a": [rng.normal(size=80).tolist() for _ in range(3)], "b": [list(range(60))]}
+    png = results.plot_reward_curves(groups, 20, tmp_path / "f.png", vlines={"a": [10]})
+    assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_table_5_1_against_expert():
+    from torchrl_causal.causal.expert import expert_dags
+    from torchrl_causal.schema import ACTION_NAMES
+
+    expert = expert_dags()
+    totals = {a: len(results.edge_set(expert[a])) for a in ACTION_NAMES}
+    # thesis Table 5.1, "Total Edges given CBN"
+    assert totals == {"ascend": 14, "descend": 14, "forward": 14, "backward": 14,
+                      "left": 17, "right": 17, "turn_left": 16, "turn_right": 17}
+    first = {a: list(expert[a])[:2] + [("altitude_t", "reward")] for a in ACTION_NAMES}
+    last = {a: list(expert[a])[:5] for a in ACTION_NAMES}
+    rows = results.edge_table(expert, first, last, ACTION_NAMES)
+    fwd = rows[ACTION_NAMES.index("forward")]
+    assert (fwd["first_common"], fwd["last_common"], fwd["last_edges"]) == (2, 5, 5)
+    assert fwd["similarity_last"] == pytest.approx(5 / 14)
+    md = results.table_markdown(rows, "T")
+    assert md.count("\n|") == 2 + len(ACTION_NAMES) and "| forward | 14 | 2/3 | 5/5 |" in md
+
+
+def test_reproduce_plan_covers_protocol(tmp_path):
+    plan = reproduce.run_plan(tmp_path, "full", 3, list(ru.VARIANTS), [100, 200, 400, 600])
+    assert len(plan) == 5 * 3 + 3 * 3
+    argv = dict(plan)[tmp_path / "variants" / "cbn_pn" / "seed_2"]
+    assert argv[:3] == ["--config-name", "cbn_pn", "seed=2"]
+    assert "collector.total_episodes=700" in argv
+    ks = sorted({a for _, argv in plan for a in argv if a.startswith("causal.k=")})
+    assert ks == ["causal.k=100", "causal.k=400", "causal.k=600"]
+    with pytest.raises(ValueError, match="--seeds=0"):
+        reproduce.main(["--seeds", "0", "--dry-run", "--root", str(tmp_path)])
