@@ -1,0 +1,11 @@
+"""Replay-buffer side: the hook that feeds causal learning.
+
+* :class:`CausalLearningHook` -- a replay-buffer transform that appends every
+  stored transition to a :class:`~torchrl_causal.causal.CausalLearner`, relearns
+  every ``k`` frames (optionally in a background thread) and pushes the new
+  compiled tables to the registered :class:`~torchrl_causal.modules.CBNGate`\\ s.
+"""
+
+from torchrl_causal.data.hook import CausalLearningHook
+
+__all__ = ["CausalLearningHook"]
