@@ -1,0 +1,29 @@
+"""The nine causal state features as TorchRL transforms (thesis sec. 4.2-4.3).
+
+* :class:`DepthSections` -- minimum depth in the five image sections (Fig. 4.2).
+* :class:`GoalFeatures` -- goal in sight / distance / angle from a
+  :class:`~torchrl_causal.perception.goal.GoalMeter` (for envs that do not
+  measure the goal themselves; ``DroneNavEnv`` does).
+* :class:`Discretize` -- ``causal_features`` (float32 ``[..., 9]``) and
+  ``causal_state`` (int64 ``[..., 9]``, ``MultiCategorical``).
+* :func:`make_causal_transforms` -- the whole stack for a ``DroneNavEnv``.
+
+The altitude needs no transform: ``Discretize`` reads the env's ``altitude``
+key directly (rename another env's key with TorchRL's ``RenameTransform`` or
+pass ``altitude_key``).
+"""
+
+from torchrl_causal.transforms.depth import SECTION_NAMES, DepthSections, section_masks
+from torchrl_causal.transforms.discretize import Discretize, Thresholds
+from torchrl_causal.transforms.goal import GoalFeatures
+from torchrl_causal.transforms.stack import make_causal_transforms
+
+__all__ = [
+    "DepthSections",
+    "Discretize",
+    "GoalFeatures",
+    "SECTION_NAMES",
+    "Thresholds",
+    "make_causal_transforms",
+    "section_masks",
+]
