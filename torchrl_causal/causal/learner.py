@@ -1,0 +1,284 @@
+"""``CausalLearner``: thesis Alg. 2 for all actions, feeding the CBN gate.
+
+It stores every transition for the action taken (:class:`TransitionData`),
+and :meth:`CausalLearner.relearn` (called every ``k`` steps by the replay-buffer
+hook) runs, for each action: warm-started BIC hill climbing under time tiers
+(``mode="learned"``) or takes the expert structure (``mode="defined"``),
+deletes/forbids synchronous links, fits the CPTs with a Dirichlet prior and
+compiles P(reward | state_t) for every joint state into one
+:class:`~torchrl_causal.causal.tables.RewardTables`.
+
+An action's model is ``known=False`` (the gate abstains for it) when it has
+fewer than ``min_rows`` transitions (including never taken) or when its reward
+class never varied (a constant reward says nothing about which states are
+risky). Constant state columns and parent configurations never seen are
+handled by the prior and never raise.
+
+Example:
+    >>> import torch
+    >>> from torchrl_causal.causal import CausalLearner
+    >>> learner = CausalLearner(min_rows=10)
+    >>> g = torch.Generator().manual_seed(0)
+    >>> s0 = torch.randint(0, 2, (200, 9), generator=g)
+    >>> s1 = torch.randint(0, 2, (200, 9), generator=g)
+    >>> a = torch.zeros(200, dtype=torch.long)
+    >>> r = torch.where(s1[:, 5] == 1, 50.0, -9.0)
+    >>> learner.add(s0, a, s1, r)
+    >>> tables = learner.relearn()
+    >>> tables.known.tolist()
+    [True, False, False, False, False, False, False, False]
+    >>> ("goal_in_sight_t1", "reward") in learner.dags()["forward"]
+    True
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchrl_causal.causal.data import TransitionData
+from torchrl_causal.causal.expert import expert_dags
+from torchrl_causal.causal.inference import CBN, compile_tables, fit_cbn
+from torchrl_causal.causal.io import save_cbn
+from torchrl_causal.causal.structure import (
+    BACKENDS,
+    CARDINALITY,
+    SYNCHRONOUS,
+    learn_structure,
+)
+from torchrl_causal.causal.tables import RewardTables
+from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, VariableSchema
+
+__all__ = ["CausalLearner", "MODES"]
+
+MODES = ("learned", "defined")
+
+
+class CausalLearner:
+    """Learns (or fits) one CBN per action and compiles the reward tables.
+
+    Args:
+        schema: the variable schema of ``causal_state``.
+        n_actions: number of actions (8 for the drone; ``mode="defined"`` needs 8).
+        mode: ``"learned"`` (BIC hill climbing, thesis Alg. 2) or ``"defined"``
+            (expert structures of :func:`~torchrl_causal.causal.expert.expert_dags`,
+            CPTs fitted from data at each relearn).
+        backend: structure-learning backend, ``"fast"`` or ``"pgmpy"``.
+        min_rows: minimum transitions of an action for its model to be known.
+        prior: Dirichlet pseudo count per CPT cell (default 1.0).
+        synchronous: ``"forbid"`` (default) or ``"delete_after"`` same-slice links.
+        max_indegree: maximum parents per node (``None``: no limit).
+        cardinality: ``"schema"`` or ``"observed"`` cardinalities in the BIC penalty.
+        warm_start: start each search from the action's previous DAG (thesis Alg. 2 l. 4-6).
+        max_rows: keep only the newest ``max_rows`` transitions per action (``None``: all).
+        device: device of the compiled tables.
+
+    Example:
+        >>> learner = CausalLearner(mode="defined")
+        >>> learner.tables is None
+        True
+        >>> learner.relearn().known.any().item()
+        False
+    """
+
+    def __init__(
+        self,
+        schema: VariableSchema = DEFAULT_SCHEMA,
+        n_actions: int = 8,
+        *,
+        mode: str = "learned",
+        backend: str = "fast",
+        min_rows: int = 30,
+        prior: float = 1.0,
+        synchronous: str = "forbid",
+        max_indegree: int | None = None,
+        cardinality: str = "schema",
+        warm_start: bool = True,
+        max_rows: int | None = None,
+        device=None,
+    ):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if synchronous not in SYNCHRONOUS:
+            raise ValueError(f"synchronous must be one of {SYNCHRONOUS}, got {synchronous!r}")
+        if cardinality not in CARDINALITY:
+            raise ValueError(f"cardinality must be one of {CARDINALITY}, got {cardinality!r}")
+        if not isinstance(min_rows, int) or min_rows < 1:
+            raise ValueError(f"min_rows must be an int >= 1, got {min_rows!r}")
+        if not (isinstance(prior, (int, float)) and prior > 0):
+            raise ValueError(f"prior must be a positive pseudo count, got {prior!r}")
+        if max_indegree is not None and (not isinstance(max_indegree, int) or max_indegree < 0):
+            raise ValueError(f"max_indegree must be None or an int >= 0, got {max_indegree!r}")
+        if not isinstance(n_actions, int) or n_actions < 1:
+            raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
+        if mode == "defined" and n_actions != len(ACTION_NAMES):
+            raise ValueError(
+                f"mode='defined' uses the {len(ACTION_NAMES)} expert CBNs, got n_actions={n_actions}"
+            )
+        self.schema = schema
+        self.n_actions = n_actions
+        self.mode = mode
+        self.backend = backend
+        self.min_rows = min_rows
+        self.prior = float(prior)
+        self.synchronous = synchronous
+        self.max_indegree = max_indegree
+        self.cardinality = cardinality
+        self.warm_start = warm_start
+        self.device = device
+        self.action_names = (
+            list(ACTION_NAMES) if n_actions == len(ACTION_NAMES) else [f"action_{i}" for i in range(n_actions)]
+        )
+        self.data = TransitionData(n_actions, schema, max_rows=max_rows)
+        self._expert = expert_dags(schema) if mode == "defined" else None
+        self._dags: list[list] = [
+            list(self._expert[a]) if self._expert else [] for a in self.action_names
+        ]
+        self.cbns: list[CBN | None] = [None] * n_actions
+        self._tables: RewardTables | None = None
+        self.n_relearns = 0
+        self.history: list[dict] = []
+
+    # ------------------------------------------------------------------ data
+    def add(self, state_t, action, state_t1, reward) -> None:
+        """Store transitions; reward class is positive iff ``reward >= 0``.
+
+        Args:
+            state_t: LongTensor ``[N, n_vars]``.
+            action: LongTensor ``[N]``.
+            state_t1: LongTensor ``[N, n_vars]``.
+            reward: FloatTensor ``[N]``.
+        """
+        self.data.add(state_t, action, state_t1, reward)
+
+    # -------------------------------------------------------------- learning
+    def _degenerate(self, rows: np.ndarray) -> str | None:
+        if rows.shape[0] < self.min_rows:
+            return f"{rows.shape[0]} rows < min_rows={self.min_rows}"
+        if rows[:, -1].min() == rows[:, -1].max():
+            return "reward class never varied"
+        return None
+
+    def relearn(self) -> RewardTables:
+        """Learn/fit every action's CBN and compile the reward tables (thesis Alg. 2)."""
+        t0 = time.perf_counter()
+        record = {"relearn": self.n_relearns + 1, "frames": self.data.total_added, "actions": {}}
+        for a, name in enumerate(self.action_names):
+            rows = self.data.rows(a)
+            why = self._degenerate(rows)
+            info = {"n_rows": int(rows.shape[0]), "known": why is None, "reason": why}
+            if self.mode == "learned" and rows.shape[0] >= self.min_rows:
+                res = learn_structure(
+                    rows,
+                    self.schema,
+                    backend=self.backend,
+                    start_dag=self._dags[a] if self.warm_start else None,
+                    synchronous=self.synchronous,
+                    max_indegree=self.max_indegree,
+                    cardinality=self.cardinality,
+                )
+                self._dags[a] = list(res.edges)
+                info.update(score=res.score, seconds=res.seconds, deleted=[list(e) for e in res.deleted_edges])
+            cbn = fit_cbn(self._dags[a], rows, self.schema, prior=self.prior, known=why is None)
+            cbn.meta = {"action": name, "mode": self.mode}
+            self.cbns[a] = cbn
+            info["edges"] = [list(e) for e in self._dags[a]]
+            info["markov_blanket"] = cbn.markov_blanket()
+            record["actions"][name] = info
+        self._tables = compile_tables(self.cbns, self.schema, device=self.device)
+        self.n_relearns += 1
+        record["seconds"] = time.perf_counter() - t0
+        self.history.append(record)
+        return self._tables
+
+    # ------------------------------------------------------------- accessors
+    @property
+    def tables(self) -> RewardTables | None:
+        """The last compiled tables (``None`` before the first :meth:`relearn`)."""
+        return self._tables
+
+    def dags(self) -> dict[str, list[tuple[str, str]]]:
+        """Current DAG of every action, ``{action_name: [(source, target), ...]}``."""
+        return {name: [tuple(e) for e in d] for name, d in zip(self.action_names, self._dags)}
+
+    def history_dags(self, index: int) -> dict[str, list[tuple[str, str]]]:
+        """The DAGs recorded at relearn ``index`` of :attr:`history` (``0`` first, ``-1`` last)."""
+        rec = self.history[index]
+        return {name: [tuple(e) for e in info["edges"]] for name, info in rec["actions"].items()}
+
+    # ---------------------------------------------------------- persistence
+    def state_dict(self) -> dict:
+        """Everything needed to resume: options, data, DAGs, history, tables."""
+        return {
+            "options": {
+                "n_actions": self.n_actions,
+                "mode": self.mode,
+                "backend": self.backend,
+                "min_rows": self.min_rows,
+                "prior": self.prior,
+                "synchronous": self.synchronous,
+                "max_indegree": self.max_indegree,
+                "cardinality": self.cardinality,
+            },
+            "data": self.data.state_dict(),
+            "dags": [[list(e) for e in d] for d in self._dags],
+            "n_relearns": self.n_relearns,
+            "history": json.loads(json.dumps(self.history)),
+            "tables": None if self._tables is None else self._tables.state_dict(),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Restore a :meth:`state_dict`; the CBNs are refitted from the restored data."""
+        if sd["options"]["n_actions"] != self.n_actions:
+            raise ValueError(
+                f"state dict is for n_actions={sd['options']['n_actions']}, this learner has {self.n_actions}"
+            )
+        self.data.load_state_dict(sd["data"])
+        self._dags = [[tuple(e) for e in d] for d in sd["dags"]]
+        self.n_relearns = int(sd["n_relearns"])
+        self.history = list(sd["history"])
+        if sd["tables"] is None:
+            self._tables = None
+            self.cbns = [None] * self.n_actions
+        else:
+            for a in range(self.n_actions):
+                rows = self.data.rows(a)
+                self.cbns[a] = fit_cbn(self._dags[a], rows, self.schema, prior=self.prior,
+                                       known=bool(sd["tables"]["known"][a]))
+            self._tables = RewardTables.from_state_dict(sd["tables"], self.schema)
+            if self.device is not None:
+                self._tables = self._tables.to(self.device)
+
+    def save(self, directory, fmt: str = ".xmlbif") -> Path:
+        """Write every action's CBN (``<action><fmt>``) plus ``learner.json`` to ``directory``.
+
+        Args:
+            directory: output folder (created).
+            fmt: ``".xmlbif"`` (default), ``".bif"`` or ``".json"``.
+
+        Returns:
+            the directory.
+        """
+        if fmt not in (".xmlbif", ".xml", ".bif", ".json"):
+            raise ValueError(f"fmt must be '.xmlbif', '.xml', '.bif' or '.json', got {fmt!r}")
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        summary = {"mode": self.mode, "n_relearns": self.n_relearns, "actions": {}}
+        for a, name in enumerate(self.action_names):
+            cbn = self.cbns[a] or CBN.uniform(self._dags[a], self.schema)
+            save_cbn(cbn, directory / f"{name}{fmt}")
+            summary["actions"][name] = {
+                "file": f"{name}{fmt}",
+                "known": cbn.known,
+                "n_rows": cbn.n_rows,
+                "edges": [list(e) for e in cbn.edges],
+                "markov_blanket": cbn.markov_blanket(),
+            }
+        (directory / "learner.json").write_text(json.dumps(summary, indent=1))
+        return directory
