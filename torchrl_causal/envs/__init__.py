@@ -1,0 +1,53 @@
+"""MuJoCo drone navigation environment (:class:`DroneNavEnv`), its scene, layouts and control.
+
+Names are imported lazily so that importing this package (e.g. by gymnasium's
+registration) stays cheap and free of import cycles with torchrl.
+
+* :class:`DroneNavEnv` -- the TorchRL env (:mod:`torchrl_causal.envs.drone`).
+* :mod:`~torchrl_causal.envs.layouts` -- :func:`thesis_layout`,
+  :class:`RandomLayoutGenerator`, :class:`Layout`, :class:`Obstacle`.
+* :mod:`~torchrl_causal.envs.scene` -- :func:`build_model` (MjSpec), :class:`SceneRenderer`.
+* :mod:`~torchrl_causal.envs.control` -- kinematic and physics (cascaded PID) execution.
+* :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_LAZY = {
+    "DroneNavEnv": "drone",
+    "EXECUTION_MODES": "drone",
+    "LAYOUTS": "drone",
+    "Layout": "layouts",
+    "Obstacle": "layouts",
+    "thesis_layout": "layouts",
+    "RandomLayoutGenerator": "layouts",
+    "free_path_exists": "layouts",
+    "SPLITS": "layouts",
+    "build_model": "scene",
+    "SceneRenderer": "scene",
+    "helipad_image": "scene",
+    "KinematicExecutor": "control",
+    "PhysicsExecutor": "control",
+    "CascadedPID": "control",
+    "action_deltas": "control",
+    "DroneNavGymEnv": "gym_registration",
+    "register_envs": "gym_registration",
+    "GYM_ID": "gym_registration",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{mod}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,0 +1,459 @@
+"""MuJoCo scene for :class:`~torchrl_causal.envs.DroneNavEnv`, built in code with ``MjSpec``.
+
+No asset files are read: the heliport texture is drawn into a numpy array
+(:func:`helipad_image`) and handed to MuJoCo in memory; floor and obstacle
+checker textures use MuJoCo's built-in texture generator.
+
+The model contains:
+
+* the floor (a plane with a checker texture), four walls and a ceiling;
+* the layout's obstacles (boxes or cylinders);
+* the goal: a board with the heliport texture on its face, on a thin post;
+* the drone: a free-joint body (collision hull ``DRONE_HALF_EXTENTS``, 0.5 kg)
+  with four rotor sites, four thrust actuators (force along the rotor axis plus
+  a reaction torque of alternating sign) and the forward-looking camera
+  ``"front"`` at the front of the hull.
+
+Rendering speed (DESIGN.md sec. 4): shadows, multisampling, reflections,
+skybox and fog are off, the off-screen buffer is the image size, textures are
+small. :class:`SceneRenderer` renders RGB and depth in one pass and the
+segmentation pass (for the goal's visible box) only when the goal board can be
+in the image.
+
+Example:
+    >>> from torchrl_causal.envs.layouts import thesis_layout
+    >>> from torchrl_causal.envs.scene import build_model
+    >>> model, ids = build_model(thesis_layout())
+    >>> model.nu, model.nq, ids.camera
+    (4, 7, 0)
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+# 84x84 frames render fastest in the calling thread (no llvmpipe worker threads)
+os.environ.setdefault("LP_NUM_THREADS", "0")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .layouts import DRONE_HALF_EXTENTS, Layout, Obstacle  # noqa: E402
+
+__all__ = ["build_model", "helipad_image", "SceneIds", "SceneRenderer", "DRONE_MASS"]
+
+#: Mass of the drone (kg).
+DRONE_MASS = 0.5
+#: Rotor positions in the body frame (x forward, y left).
+ROTOR_XY = ((0.085, 0.085), (-0.085, 0.085), (-0.085, -0.085), (0.085, -0.085))
+#: Sign of each rotor's reaction torque about body z.
+ROTOR_SPIN = (1.0, -1.0, 1.0, -1.0)
+#: Reaction torque per newton of thrust (m).
+ROTOR_TORQUE_COEF = 0.02
+#: Maximum thrust per rotor (N).
+ROTOR_MAX_THRUST = 4.0
+#: Camera offset from the drone centre, body frame.
+CAMERA_OFFSET = (DRONE_HALF_EXTENTS[0] + 0.005, 0.0, 0.0)
+
+
+def helipad_image(
+    size: int = 64,
+    background=(0.12, 0.25, 0.55),
+    marking=(0.97, 0.97, 0.97),
+) -> np.ndarray:
+    """The heliport sign: a ring and an "H" on a coloured square, ``uint8 [size, size, 3]``.
+
+    Example:
+        >>> img = helipad_image(64)
+        >>> img.shape, img.dtype.name
+        ((64, 64, 3), 'uint8')
+    """
+    bg = (np.asarray(background) * 255).astype(np.uint8)
+    fg = (np.asarray(marking) * 255).astype(np.uint8)
+    img = np.empty((size, size, 3), np.uint8)
+    img[:] = bg
+    c = (size - 1) / 2.0
+    yy, xx = np.mgrid[0:size, 0:size]
+    r = np.hypot(xx - c, yy - c)
+    img[(r <= 0.47 * size) & (r >= 0.39 * size)] = fg
+    u = size / 64.0
+    x0, x1 = int(round(20 * u)), int(round(44 * u))
+    y0, y1 = int(round(16 * u)), int(round(48 * u))
+    bar = max(1, int(round(6 * u)))
+    img[y0:y1, x0 : x0 + bar] = fg
+    img[y0:y1, x1 - bar : x1] = fg
+    ym = (y0 + y1) // 2
+    img[ym - bar // 2 : ym - bar // 2 + bar, x0:x1] = fg
+    return img
+
+
+@dataclass
+class SceneIds:
+    """Indices into the compiled model that the env needs."""
+
+    drone_body: int
+    drone_geoms: tuple[int, ...]
+    goal_geoms: tuple[int, ...]
+    camera: int
+    qpos_adr: int
+    qvel_adr: int
+    goal_corners: np.ndarray  # [8, 3] world corners of the goal board
+
+
+def _quat_yaw(deg: float) -> list[float]:
+    a = math.radians(deg) / 2
+    return [math.cos(a), 0.0, 0.0, math.sin(a)]
+
+
+def _add_obstacle(spec: mujoco.MjSpec, o: Obstacle, k: int):
+    kw = {}
+    if o.pattern == "checker":
+        rgb1 = list(o.rgba[:3])
+        rgb2 = [v * 0.75 for v in o.rgba[:3]]
+        spec.add_texture(
+            name=f"obst_tex{k}",
+            type=mujoco.mjtTexture.mjTEXTURE_2D,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+            width=32,
+            height=32,
+            rgb1=rgb1,
+            rgb2=rgb2,
+        )
+        mat = spec.add_material(name=f"obst_mat{k}", texrepeat=[4, 4], texuniform=True)
+        tx = list(mat.textures)
+        tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"obst_tex{k}"
+        mat.textures = tx
+        kw["material"] = f"obst_mat{k}"
+    if o.shape == "box":
+        spec.worldbody.add_geom(
+            name=f"obstacle{k}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=list(o.half_size),
+            pos=list(o.center),
+            quat=_quat_yaw(o.yaw_deg),
+            rgba=list(o.rgba),
+            **kw,
+        )
+    else:
+        spec.worldbody.add_geom(
+            name=f"obstacle{k}",
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            size=[o.half_size[0], o.half_size[2], 0.0],
+            pos=list(o.center),
+            rgba=list(o.rgba),
+            **kw,
+        )
+
+
+def build_model(
+    layout: Layout,
+    *,
+    image_size: tuple[int, int] = (84, 84),
+    fov_deg: float = 60.0,
+    max_depth: float = 10.0,
+    timestep: float = 0.02,
+) -> tuple[mujoco.MjModel, SceneIds]:
+    """Compiles ``layout`` into an ``MjModel``.
+
+    Args:
+        layout: the arena.
+        image_size: ``(height, width)`` of the camera images (sets the
+            off-screen buffer size).
+        fov_deg: vertical field of view of the camera (deg).
+        max_depth: far range of interest (m); the far clipping plane is beyond it.
+        timestep: physics time step (s).
+
+    Returns:
+        ``(model, ids)``.
+
+    Example:
+        >>> from torchrl_causal.envs.layouts import thesis_layout
+        >>> model, ids = build_model(thesis_layout(), image_size=(64, 64))
+        >>> int(model.vis.global_.offwidth)
+        64
+    """
+    h, w = image_size
+    spec = mujoco.MjSpec()
+    spec.modelname = f"drone_nav_{layout.name}"
+    spec.option.timestep = timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    # rendering: cheap
+    vis = spec.visual
+    vis.quality.shadowsize = 0
+    vis.quality.offsamples = 0
+    vis.global_.offwidth = w
+    vis.global_.offheight = h
+    xmin, ymin, xmax, ymax = layout.arena
+    extent = max(xmax - xmin, ymax - ymin, layout.height)
+    spec.stat.extent = extent
+    spec.stat.center = [(xmin + xmax) / 2, (ymin + ymax) / 2, layout.height / 2]
+    vis.map.znear = 0.01 / extent
+    vis.map.zfar = max(2.0 * max_depth, 2.0 * math.hypot(extent, extent)) / extent
+    vis.map.haze = 0.0
+    vis.headlight.ambient = [layout.ambient] * 3
+    vis.headlight.diffuse = [0.25] * 3
+    vis.headlight.specular = [0.0] * 3
+    wb = spec.worldbody
+
+    # floor: checker texture, uniform metric tiles of 0.5 m
+    spec.add_texture(
+        name="floor_tex",
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        width=32,
+        height=32,
+        rgb1=list(layout.floor_rgb[0]),
+        rgb2=list(layout.floor_rgb[1]),
+    )
+    mat = spec.add_material(name="floor_mat", texrepeat=[1, 1], texuniform=True)
+    tx = list(mat.textures)
+    tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "floor_tex"
+    mat.textures = tx
+    cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
+    hx, hy = (xmax - xmin) / 2, (ymax - ymin) / 2
+    wb.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[hx, hy, 0.5],
+        pos=[cx, cy, 0.0],
+        material="floor_mat",
+    )
+    t = 0.05
+    H = layout.height
+    walls = [
+        ([xmin - t, cy, H / 2], [t, hy + 2 * t, H / 2]),
+        ([xmax + t, cy, H / 2], [t, hy + 2 * t, H / 2]),
+        ([cx, ymin - t, H / 2], [hx + 2 * t, t, H / 2]),
+        ([cx, ymax + t, H / 2], [hx + 2 * t, t, H / 2]),
+    ]
+    for k, (pos, size) in enumerate(walls):
+        wb.add_geom(
+            name=f"wall{k}", type=mujoco.mjtGeom.mjGEOM_BOX, size=size, pos=pos,
+            rgba=list(layout.wall_rgba),
+        )
+    wb.add_geom(
+        name="ceiling", type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx + 2 * t, hy + 2 * t, t],
+        pos=[cx, cy, H + t], rgba=list(layout.ceiling_rgba),
+    )
+    for k, o in enumerate(layout.obstacles):
+        _add_obstacle(spec, o, k)
+
+    # goal board with the heliport texture, on a post
+    tex = spec.add_texture(
+        name="helipad", type=mujoco.mjtTexture.mjTEXTURE_2D, width=64, height=64, nchannel=3
+    )
+    tex.data = helipad_image(64, *layout.helipad_rgb).tobytes()
+    mat = spec.add_material(name="helipad_mat")
+    tx = list(mat.textures)
+    tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "helipad"
+    mat.textures = tx
+    gw, gh = layout.goal_size
+    gt = layout.goal_thickness
+    gquat = _quat_yaw(layout.goal_yaw_deg)
+    wb.add_geom(
+        name="goal_board", type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[gt / 2, gw / 2, gh / 2], pos=list(layout.goal_center), quat=gquat,
+        material="helipad_mat",
+    )
+    bottom = layout.goal_center[2] - gh / 2
+    if bottom > 0.05:
+        back = np.asarray(layout.goal_center) - layout.goal_normal() * (gt / 2 + 0.03)
+        wb.add_geom(
+            name="goal_post", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            size=[0.025, bottom / 2, 0.0], pos=[back[0], back[1], bottom / 2],
+            rgba=[0.3, 0.3, 0.3, 1.0],
+        )
+    light = wb.add_light(
+        name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, dir=list(layout.light_dir),
+        pos=[cx, cy, H], castshadow=False, diffuse=[layout.light_diffuse] * 3,
+        specular=[0.05] * 3,
+    )
+    del light
+
+    # the drone
+    dx, dy, dz = DRONE_HALF_EXTENTS
+    body = wb.add_body(name="drone", pos=list(layout.start_pos), quat=_quat_yaw(layout.start_yaw_deg))
+    body.add_freejoint(name="drone_root")
+    body.add_geom(
+        name="drone_hull", type=mujoco.mjtGeom.mjGEOM_BOX, size=[dx, dy, dz],
+        mass=DRONE_MASS, rgba=[0.15, 0.15, 0.15, 1.0], margin=0.0,
+    )
+    for k, ((rx, ry), spin) in enumerate(zip(ROTOR_XY, ROTOR_SPIN)):
+        body.add_geom(
+            name=f"rotor{k}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.035, 0.004, 0],
+            pos=[rx, ry, dz], contype=0, conaffinity=0, mass=0.0, group=1,
+            rgba=[0.8, 0.1, 0.1, 0.6],
+        )
+        body.add_site(name=f"rotor{k}", pos=[rx, ry, dz])
+        spec.add_actuator(
+            name=f"thrust{k}",
+            trntype=mujoco.mjtTrn.mjTRN_SITE,
+            target=f"rotor{k}",
+            gear=[0, 0, 1, 0, 0, spin * ROTOR_TORQUE_COEF],
+            ctrllimited=True,
+            ctrlrange=[0.0, ROTOR_MAX_THRUST],
+        )
+    body.add_camera(
+        name="front", pos=list(CAMERA_OFFSET), xyaxes=[0, -1, 0, 0, 0, 1], fovy=fov_deg
+    )
+    model = spec.compile()
+
+    gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "goal_board")
+    corners = []
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            for sz in (-1, 1):
+                corners.append([sx * gt / 2, sy * gw / 2, sz * gh / 2])
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, np.asarray(gquat, dtype=np.float64))
+    corners = np.asarray(corners) @ rot.reshape(3, 3).T + np.asarray(layout.goal_center)
+    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "drone")
+    jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "drone_root")
+    drone_geoms = tuple(int(g) for g in np.nonzero(model.geom_bodyid == bid)[0])
+    ids = SceneIds(
+        drone_body=int(bid),
+        drone_geoms=drone_geoms,
+        goal_geoms=(int(gid),),
+        camera=int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "front")),
+        qpos_adr=int(model.jnt_qposadr[jid]),
+        qvel_adr=int(model.jnt_dofadr[jid]),
+        goal_corners=corners,
+    )
+    return model, ids
+
+
+class SceneRenderer:
+    """Lean off-screen renderer: RGB + metric depth in one pass, goal mask on demand.
+
+    Owns one OpenGL context for its lifetime; :meth:`set_model` swaps the
+    model (new layout) without creating a new context. Output buffers are
+    allocated once and overwritten by every call; copy them if you keep them.
+
+    Args:
+        model: the compiled model (its off-screen buffer must be >= the image).
+        height: image height.
+        width: image width.
+        camera: camera id to render from.
+        max_depth: depth values beyond it (and background) are clipped to it.
+
+    Example:
+        >>> import mujoco
+        >>> from torchrl_causal.envs.layouts import thesis_layout
+        >>> model, ids = build_model(thesis_layout())
+        >>> data = mujoco.MjData(model); mujoco.mj_forward(model, data)
+        >>> r = SceneRenderer(model, 84, 84, ids.camera)
+        >>> rgb, depth = r.render(data)
+        >>> rgb.shape, depth.shape, bool(depth.max() <= 10.0)
+        ((84, 84, 3), (84, 84), True)
+        >>> r.close()
+    """
+
+    def __init__(self, model, height: int, width: int, camera: int, max_depth: float = 10.0):
+        from mujoco import gl_context
+
+        self.height, self.width = int(height), int(width)
+        self.max_depth = float(max_depth)
+        self._gl = gl_context.GLContext(self.width, self.height)
+        self._gl.make_current()
+        self._ctx = None
+        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
+        self._cam = mujoco.MjvCamera()
+        self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._opt = mujoco.MjvOption()
+        self._opt.geomgroup[1] = 0  # rotor discs: not needed by the onboard camera
+        self._pert = mujoco.MjvPerturb()
+        self.rgb = np.empty((self.height, self.width, 3), np.uint8)
+        self.depth = np.empty((self.height, self.width), np.float32)
+        self._seg_rgb = np.empty((self.height, self.width, 3), np.uint8)
+        self._zbuf = np.empty((self.height, self.width), np.float32)
+        self.set_model(model, camera)
+
+    def set_model(self, model, camera: int):
+        """Switches to a new model (keeps the GL context)."""
+        self._gl.make_current()
+        if self._ctx is not None:
+            self._ctx.free()
+        self.model = model
+        self._scene = mujoco.MjvScene(model=model, maxgeom=max(64, 4 * model.ngeom))
+        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
+        self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._cam.fixedcamid = int(camera)
+        extent = model.stat.extent
+        znear = np.float32(model.vis.map.znear * extent)
+        zfar = np.float32(model.vis.map.zfar * extent)
+        c = -(zfar + znear) / (zfar - znear)
+        d = -(np.float32(2) * zfar * znear) / (zfar - znear)
+        self._c = float(np.float32(-0.5) * c - np.float32(0.5))
+        self._d = float(np.float32(-0.5) * d)
+
+    def render(self, data) -> tuple[np.ndarray, np.ndarray]:
+        """Renders the camera view; returns the (reused) ``rgb`` and ``depth`` buffers."""
+        self._gl.make_current()
+        mujoco.mjv_updateScene(
+            self.model, data, self._opt, self._pert, self._cam,
+            mujoco.mjtCatBit.mjCAT_ALL.value, self._scene,
+        )
+        mujoco.mjr_render(self._rect, self._scene, self._ctx)
+        mujoco.mjr_readPixels(self.rgb, self._zbuf, self._rect, self._ctx)
+        # OpenGL rows are bottom-up
+        self.rgb[:] = self.rgb[::-1]
+        z = self._zbuf[::-1]
+        # reversed-Z depth buffer -> metric z-depth (as mujoco.Renderer does)
+        np.divide(self._d, z + self._c, out=self.depth)
+        np.minimum(self.depth, self.max_depth, out=self.depth)
+        self.depth[~np.isfinite(self.depth) | (self.depth < 0)] = self.max_depth
+        return self.rgb, self.depth
+
+    def geom_mask(self, geom_ids) -> np.ndarray:
+        """Bool mask ``[H, W]`` of the pixels showing any of ``geom_ids``.
+
+        Re-renders the scene of the last :meth:`render` call in segmentation mode.
+        """
+        self._gl.make_current()
+        scn = self._scene
+        flags = scn.flags
+        flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+        flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+        try:
+            mujoco.mjr_render(self._rect, scn, self._ctx)
+            mujoco.mjr_readPixels(self._seg_rgb, None, self._rect, self._ctx)
+        finally:
+            flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
+            flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
+        wanted = set(int(g) for g in geom_ids)
+        segids = [
+            g.segid + 1
+            for g in scn.geoms[: scn.ngeom]
+            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid in wanted and g.segid >= 0
+        ]
+        seg = self._seg_rgb[::-1]
+        ids = (
+            seg[..., 0].astype(np.int32)
+            | (seg[..., 1].astype(np.int32) << 8)
+            | (seg[..., 2].astype(np.int32) << 16)
+        )
+        if len(segids) == 1:
+            return ids == segids[0]
+        return np.isin(ids, segids)
+
+    def close(self):
+        """Frees the GL resources (idempotent)."""
+        if getattr(self, "_gl", None) is not None:
+            try:
+                self._gl.make_current()
+                if self._ctx is not None:
+                    self._ctx.free()
+            finally:
+                self._ctx = None
+                self._gl.free()
+                self._gl = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
