@@ -12,6 +12,9 @@ Conventions:
       camera's horizontal field of view (pinhole model);
     * the distance is the median of the valid depth pixels inside the box
       (robust to the background seen through/around the board's edges);
+    * boxes are clipped to the image (NaN coordinates count as 0), so a box
+      partly outside the image is measured on its visible part; NaN scores
+      count as 0; a box without any valid depth pixel is not in sight;
     * while the goal is not in sight the distance is ``nan`` and the angle 0.
 
 Example:
@@ -156,13 +159,16 @@ class GoalMeter:
         else:
             conf, best = scores.max(-1)
             box = boxes.gather(1, best.view(B, 1, 1).expand(B, 1, 4)).squeeze(1)
+        conf = torch.nan_to_num(conf, nan=0.0)
         in_sight = conf > self.confidence_threshold
+        # clip boxes to the image before any integer cast (NaN -> 0, +-inf -> border):
+        # the measurement only uses the visible part of a box
+        box = torch.nan_to_num(box, nan=0.0, posinf=float(max(H, W)), neginf=0.0)
+        limits = torch.tensor([W, H, W, H], dtype=torch.float32)
+        box = torch.minimum(box.clamp(min=0.0), limits)
         # median valid depth inside each box
         box_i = box.round().long()
-        x0 = box_i[:, 0].clamp(0, W)
-        x1 = box_i[:, 2].clamp(0, W)
-        y0 = box_i[:, 1].clamp(0, H)
-        y1 = box_i[:, 3].clamp(0, H)
+        x0, y0, x1, y1 = box_i.unbind(-1)
         xs = torch.arange(W).view(1, 1, W)
         ys = torch.arange(H).view(1, H, 1)
         inside = (

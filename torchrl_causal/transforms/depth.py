@@ -252,14 +252,12 @@ class DepthSections(Transform):
             vals = depth.gather(1, idx).view(B, 5, self.n_points)
             ok = vals > 0  # False for NaN and <= 0 (incl. -inf)
         # invalid rule: NaN, -inf, <= 0 ignored; +inf and beyond range -> max_depth
-        # (min then clip == clip then min, as clipping is monotone)
-        vals = torch.where(ok, vals, tab["inf"]).amin(-1)
         if self.invalid_value == self.max_depth:
-            out = vals.clamp(max=self.max_depth)
+            # no valid reading -> inf -> max_depth; min-then-clip == clip-then-min
+            out = torch.where(ok, vals, tab["inf"]).amin(-1).clamp(max=self.max_depth)
         else:
-            out = torch.where(
-                vals == float("inf"), self.invalid_value, vals.clamp(max=self.max_depth)
-            )
+            vals = torch.where(ok, vals.clamp(max=self.max_depth), tab["inf"]).amin(-1)
+            out = torch.where(vals == float("inf"), self.invalid_value, vals)
         return out.reshape(*batch, 5)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:

@@ -160,13 +160,15 @@ class Discretize(Transform):
             hi = [md] * 5 + [1.0, md, 90.0, big]
             nan_fill = [md] * 5 + [0.0, md, 0.0, 0.0]
             keep_unseen = [True] * 5 + [False, False, False, True]
-            # code = sum_k weight_k * (x > edge_k) + bias; ">= low" is "> nextafter(low, -inf)"
+            # code = sum_k weight_k * (x > edge_k) + bias
             edges = [[th.depth_close, inf]] * 5 + [
                 [0.5, inf],
                 [th.goal_close, inf],
-                [th.angle_good, math.nextafter(-th.angle_good, -inf)],
-                [math.nextafter(th.altitude_low, -inf), th.altitude_high],
+                [th.angle_good, -th.angle_good],
+                [th.altitude_low, th.altitude_high],
             ]
+            # ">= e" is "> nextafter(e, -inf)", taken in float32 (the features' dtype)
+            strict = [[False, False]] * 7 + [[False, True], [True, False]]
             weights = [[1, 1]] * 7 + [[1, -2], [1, 1]]  # angle: (x > a) + 2 * (x < -a)
             bias_seen = [0] * 7 + [2, 0]
             bias_unseen = [0] * 6 + [2, 2, 0]  # distance -> not_visible
@@ -177,7 +179,11 @@ class Discretize(Transform):
                 torch.tensor(hi, **f32),
                 torch.tensor(nan_fill, **f32),
                 torch.tensor(keep_unseen, dtype=torch.bool, device=device),
-                torch.tensor(edges, dtype=torch.float64, device=device).to(torch.float32),
+                torch.where(
+                    torch.tensor(strict, device=device),
+                    torch.nextafter(torch.tensor(edges, **f32), torch.tensor(-inf, **f32)),
+                    torch.tensor(edges, **f32),
+                ),
                 torch.tensor(weights, **i64),
                 torch.tensor(bias_seen, **i64),
                 torch.tensor(bias_unseen, **i64),
