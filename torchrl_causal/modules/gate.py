@@ -304,12 +304,6 @@ class CBNGate(TensorDictModuleBase):
             self.generator.set_state(state["generator"])
 
     # ------------------------------------------------------------------ forward
-    def _rand(self, shape, device):
-        return torch.rand(shape, generator=self.generator, device=device)
-
-    def _randint(self, high, shape, device):
-        return torch.randint(high, shape, generator=self.generator, device=device)
-
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         q = tensordict.get(self.action_value_key)
         device = q.device
@@ -331,76 +325,70 @@ class CBNGate(TensorDictModuleBase):
         use_cbn = random_mode or self.eval_gate
         eps = self.eps.to(device) if random_mode else torch.zeros((), device=device)
 
-        # One draw of each kind per element on every call (reproducible streams).
-        u_eps = self._rand(shape, device)
-        u_cbn = self._rand(shape, device)
-        r_any = self._randint(n_actions, shape, device)
-        r_other = self._randint(n_actions - 1, shape, device)
+        # One draw of each kind per element on every call (reproducible streams):
+        # u_eps, u_cbn uniform in [0, 1); r_any uniform in {0..A-1}; r_other in {0..A-2}.
+        u = torch.rand((4, *shape), generator=self.generator, device=device)
+        u_eps, u_cbn = u[0], u[1]
+        r_any = (u[2] * n_actions).long().clamp_max_(n_actions - 1)
+        r_other = (u[3] * (n_actions - 1)).long().clamp_max_(n_actions - 2)
 
-        false = torch.zeros(shape, dtype=torch.bool, device=device)
         if tables is not None and use_cbn:
             if tables.n_actions != n_actions:
                 raise ValueError(
                     f"tables have {tables.n_actions} actions, action_value has {n_actions}"
                 )
-            p_pos_all, p_neg_all, known_all = tables.lookup(
+            p_pos_all, _, known_all = tables.lookup(
                 tensordict.get(self.causal_state_key).to(device)
             )
         else:
-            p_pos_all = p_neg_all = known_all = None
+            p_pos_all = known_all = None
 
-        def at(x, a):
-            return x.gather(-1, a.unsqueeze(-1)).squeeze(-1)
-
+        false = torch.zeros(shape, dtype=torch.bool, device=device)
         explored = u_eps < eps
-        vetoed = replaced = false
+        consulted = vetoed = replaced = false
+        pp = ok = None
         if self.variant == "v2":
             if known_all is not None:
-                model_ok = at(known_all, greedy)
-                consulted = (u_cbn < self.prob_causal_model) & model_ok
-            else:
-                consulted = false
-            explored = ~consulted & explored
+                ok_greedy = known_all.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)
+                consulted = (u_cbn < self.prob_causal_model) & ok_greedy
+                explored = explored & ~consulted
             proposal = torch.where(explored, r_any, greedy)
             action = proposal
             if known_all is not None:
-                pp, pn = at(p_pos_all, proposal), at(p_neg_all, proposal)
-                vetoed = consulted & (pp < self.threshold) & (pn > self.threshold)
-                other = r_other + (r_other >= proposal).long()
-                action = torch.where(vetoed, other, action)
+                pp = p_pos_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+                ok = known_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+                # P(a) < thr and N(a) = 1 - P(a) > thr
+                vetoed = consulted & (pp < self.threshold) & ((1.0 - pp) > self.threshold)
+                action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
         else:
             proposal = torch.where(explored, r_any, greedy)
             action = proposal
             if known_all is not None:
-                consulted = (
-                    ~explored & (u_cbn < self.prob_causal_model) & at(known_all, proposal)
-                )
-                pp, pn = at(p_pos_all, proposal), at(p_neg_all, proposal)
+                pp = p_pos_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+                ok = known_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+                consulted = ~explored & (u_cbn < self.prob_causal_model) & ok
                 if self.variant == "pn":
-                    vetoed = consulted & (pn > self.threshold)
-                    other = r_other + (r_other >= proposal).long()
-                    action = torch.where(vetoed, other, action)
-                replaced = consulted & ~vetoed & (pp < self.threshold)
+                    vetoed = consulted & ((1.0 - pp) > self.threshold)
+                    action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
+                    replaced = consulted & ~vetoed & (pp < self.threshold)
+                else:
+                    replaced = consulted & (pp < self.threshold)
                 best = p_pos_all.masked_fill(~known_all, -1.0).argmax(-1)
                 action = torch.where(replaced, best, action)
-            else:
-                consulted = false
-        if not use_cbn:
-            consulted = vetoed = replaced = false
 
         self._write_action(tensordict, action, n_actions)
         cav = self.chosen_action_value_key
-        if cav is not None and cav in tensordict.keys(include_nested=True):
-            old = tensordict.get(cav)
-            tensordict.set(cav, at(q, action).reshape(old.shape).to(old.dtype))
+        old = tensordict.get(cav, None) if cav is not None else None
+        if old is not None:
+            chosen = q.gather(-1, action.unsqueeze(-1)).squeeze(-1)
+            tensordict.set(cav, chosen.reshape(old.shape).to(old.dtype))
         if self.diagnostic_keys:
-            if known_all is not None:
-                ok = at(known_all, proposal)
-                nan = torch.full(shape, float("nan"), device=device)
-                p_pos = torch.where(ok, at(p_pos_all, proposal).float(), nan)
-                p_neg = torch.where(ok, at(p_neg_all, proposal).float(), nan)
+            if pp is not None:
+                p_pos = torch.where(ok, pp.float(), float("nan"))
+                p_neg = 1.0 - p_pos
             else:
-                p_pos = p_neg = torch.full(shape, float("nan"), device=device)
+                p_pos = torch.full(shape, float("nan"), device=device)
+                p_neg = p_pos.clone()
             k = self.diagnostic_keys
             tensordict.set(k["explored"], explored)
             tensordict.set(k["consulted"], consulted)
