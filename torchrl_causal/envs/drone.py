@@ -49,6 +49,10 @@ _OBS_KEYS = (
 )
 
 
+def _scalars_count(count: int) -> torch.Tensor:
+    return torch.from_numpy(np.array([count], dtype=np.float32))
+
+
 def _positive(name, value, allow_zero=False):
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     ok = ok and (value >= 0 if allow_zero else value > 0)
@@ -205,7 +209,8 @@ class DroneNavEnv(EnvBase):
         if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be None or an int >= 0, got {seed!r}")
 
-        super().__init__(device=device, batch_size=torch.Size([]))
+        super().__init__(device=device if device is not None else "cpu", batch_size=torch.Size([]))
+        self._to_device = self.device.type != "cpu"
         self.layout_option = layout
         self.split = split
         self.execution = execution
@@ -382,20 +387,20 @@ class DroneNavEnv(EnvBase):
 
         pixels = torch.from_numpy(rgb.copy())
         depth_t = torch.from_numpy(depth.copy())
-        box_t = torch.tensor([box], dtype=torch.float32)
+        box_t = torch.from_numpy(np.array([box], dtype=np.float32))
         meas = self.goal_meter(
             pixels.unsqueeze(0),
             depth_t.unsqueeze(0),
             gt_box=box_t,
-            gt_pixels=torch.tensor([float(count)]),
+            gt_pixels=_scalars_count(count),
         )
         in_sight = bool(meas.in_sight[0])
         g_dist = float(meas.distance[0]) if in_sight else 0.0
         g_angle = float(meas.angle[0]) if in_sight else 0.0
-        scalars = torch.tensor(
-            [alt, float(count), true_dist, bearing, g_dist, g_angle], dtype=torch.float32
+        scalars = torch.from_numpy(
+            np.array([alt, count, true_dist, bearing, g_dist, g_angle], dtype=np.float32)
         )
-        flags = torch.tensor([in_sight, crashed, reached], dtype=torch.bool)
+        flags = torch.from_numpy(np.array([in_sight, crashed, reached], dtype=np.bool_))
         obs = {
             "pixels": pixels,
             "depth": depth_t,
@@ -413,10 +418,9 @@ class DroneNavEnv(EnvBase):
         return obs
 
     def _pack(self, obs: dict) -> TensorDict:
-        td = TensorDict(obs, batch_size=torch.Size([]))
-        if self.device is not None and self.device != torch.device("cpu"):
-            td = td.to(self.device)
-        return td
+        if self._to_device:
+            return TensorDict(obs, batch_size=torch.Size([])).to(self.device)
+        return TensorDict(obs, batch_size=torch.Size([]), device=self.device)
 
     # ------------------------------------------------------------- EnvBase
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -451,10 +455,13 @@ class DroneNavEnv(EnvBase):
             reward = -9.0
         terminated = out.crashed or out.reached
         truncated = (not terminated) and self._steps >= self.max_steps
-        obs["reward"] = torch.tensor([reward], dtype=torch.float32)
-        obs["terminated"] = torch.tensor([terminated])
-        obs["truncated"] = torch.tensor([truncated])
-        obs["done"] = torch.tensor([terminated or truncated])
+        obs["reward"] = torch.from_numpy(np.array([reward], dtype=np.float32))
+        ends = torch.from_numpy(
+            np.array([terminated, truncated, terminated or truncated], dtype=np.bool_)
+        )
+        obs["terminated"] = ends[0:1]
+        obs["truncated"] = ends[1:2]
+        obs["done"] = ends[2:3]
         return self._pack(obs)
 
     def _set_seed(self, seed: int | None) -> None:

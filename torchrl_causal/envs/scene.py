@@ -377,6 +377,7 @@ class SceneRenderer:
         if self._ctx is not None:
             self._ctx.free()
         self.model = model
+        self._segid_cache = {}
         self._scene = mujoco.MjvScene(model=model, maxgeom=max(64, 4 * model.ngeom))
         self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50.value)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
@@ -424,21 +425,39 @@ class SceneRenderer:
         finally:
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
-        wanted = set(int(g) for g in geom_ids)
-        segids = [
-            g.segid + 1
-            for g in scn.geoms[: scn.ngeom]
-            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid in wanted and g.segid >= 0
-        ]
+        segids = self._segids(tuple(int(g) for g in geom_ids))
         seg = self._seg_rgb[::-1]
         ids = (
             seg[..., 0].astype(np.int32)
             | (seg[..., 1].astype(np.int32) << 8)
             | (seg[..., 2].astype(np.int32) << 16)
         )
+        if not segids:
+            return np.zeros(ids.shape, dtype=bool)
         if len(segids) == 1:
             return ids == segids[0]
         return np.isin(ids, segids)
+
+    def _segids(self, geom_ids: tuple[int, ...]) -> list[int]:
+        """Segmentation ids (+1) of ``geom_ids`` in the current scene (cached per model)."""
+        scn = self._scene
+        cached = self._segid_cache.get(geom_ids)
+        if cached is not None:
+            ngeom, idx, segids = cached
+            # the scene's geom order is fixed for a model; verify cheaply
+            if ngeom == scn.ngeom and all(scn.geoms[i].objid == g for i, g in zip(idx, geom_ids)):
+                return segids
+        idx, segids = [], []
+        for g in geom_ids:
+            for i in range(scn.ngeom):
+                sg = scn.geoms[i]
+                if sg.objtype == mujoco.mjtObj.mjOBJ_GEOM and sg.objid == g:
+                    idx.append(i)
+                    segids.append(sg.segid + 1)
+                    break
+        if len(idx) == len(geom_ids):
+            self._segid_cache[geom_ids] = (scn.ngeom, idx, segids)
+        return segids
 
     def close(self):
         """Frees the GL resources (idempotent)."""
