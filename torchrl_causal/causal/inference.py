@@ -43,7 +43,7 @@ import torch
 from torchrl_causal.causal.tables import RewardTables
 from torchrl_causal.schema import DEFAULT_SCHEMA, REWARD_NODE, T_SUFFIX, VariableSchema
 
-__all__ = ["CBN", "fit_cbn", "markov_blanket", "compile_tables"]
+__all__ = ["CBN", "fit_cbn", "random_cbn", "markov_blanket", "compile_tables"]
 
 
 def markov_blanket(edges: Iterable[tuple[str, str]], node: str = REWARD_NODE) -> list[str]:
@@ -141,6 +141,28 @@ class CBN:
         p_pos = np.broadcast_to(p_pos.reshape(full_shape), schema.cardinalities)
         return np.ascontiguousarray(p_pos).reshape(-1)
 
+    def sample(self, n: int, seed: int | None = None) -> np.ndarray:
+        """Ancestral sampling: ``n`` integer-coded rows in node order (synthetic data).
+
+        Example:
+            >>> cbn = random_cbn([("altitude_t", "altitude_t1")], seed=0)
+            >>> cbn.sample(5, seed=0).shape
+            (5, 19)
+        """
+        rng = np.random.default_rng(seed)
+        nodes = self.schema.node_names()
+        index = {v: i for i, v in enumerate(nodes)}
+        cards = self.schema.node_cardinalities()
+        out = np.zeros((int(n), len(nodes)), np.int64)
+        for v in _topological(nodes, self.parents):
+            j = np.zeros(int(n), np.int64)
+            for p in self.parents[v]:  # C order: first parent slowest
+                j = j * cards[p] + out[:, index[p]]
+            cdf = np.cumsum(self.cpts[v][:, j], axis=0)  # [card, n]
+            u = rng.random(int(n))
+            out[:, index[v]] = np.minimum((u[None, :] > cdf).sum(0), cards[v] - 1)
+        return out
+
     def to_pgmpy(self):
         """The network as a fitted pgmpy ``DiscreteBayesianNetwork`` (state names = schema labels)."""
         from pgmpy.factors.discrete import TabularCPD
@@ -191,6 +213,54 @@ class CBN:
             cpts[n] = np.asarray(vals, dtype=np.float64).reshape(vals.shape[0], -1)
         edges = [(u, v) for v in nodes for u in parents[v]]
         return cls(edges, cpts, parents, schema, **kwargs)
+
+
+def _topological(nodes, parents) -> list[str]:
+    done, order = set(), []
+    pending = list(nodes)
+    while pending:
+        rest = []
+        for v in pending:
+            if all(p in done for p in parents[v]):
+                done.add(v)
+                order.append(v)
+            else:
+                rest.append(v)
+        if len(rest) == len(pending):
+            raise ValueError("the CBN's graph has a cycle")
+        pending = rest
+    return order
+
+
+def random_cbn(
+    edges: Iterable[tuple[str, str]],
+    schema: VariableSchema = DEFAULT_SCHEMA,
+    *,
+    concentration: float = 0.5,
+    seed: int | None = None,
+) -> CBN:
+    """A CBN with CPT columns drawn from a symmetric Dirichlet (for synthetic data and tests).
+
+    Args:
+        edges: the DAG.
+        schema: the variable schema.
+        concentration: Dirichlet concentration; small values give strong dependencies.
+        seed: random seed.
+
+    Example:
+        >>> cbn = random_cbn([("altitude_t", "altitude_t1")], seed=1)
+        >>> cbn.cpts["altitude_t1"].shape
+        (3, 3)
+    """
+    if concentration <= 0:
+        raise ValueError(f"concentration must be > 0, got {concentration!r}")
+    rng = np.random.default_rng(seed)
+    cbn = fit_cbn(edges, np.zeros((0, len(schema.node_names())), np.int64), schema)
+    for v, cpt in cbn.cpts.items():
+        if cbn.parents[v]:
+            cbn.cpts[v] = rng.dirichlet([concentration] * cpt.shape[0], size=cpt.shape[1]).T.copy()
+    cbn.known = True
+    return cbn
 
 
 def fit_cbn(
