@@ -1,0 +1,111 @@
+"""Layouts: thesis scene, random generator determinism, solvability, disjoint splits."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco
+import numpy as np
+import pytest
+
+from torchrl_causal.envs.layouts import (
+    DRONE_HALF_EXTENTS,
+    Layout,
+    Obstacle,
+    RandomLayoutGenerator,
+    free_path_exists,
+    thesis_layout,
+)
+from torchrl_causal.envs.scene import build_model, helipad_image
+
+
+def _start_contacts(layout: Layout) -> int:
+    model, ids = build_model(layout)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return int(data.ncon)
+
+
+def test_thesis_layout_geometry():
+    lay = thesis_layout()
+    assert free_path_exists(lay)
+    assert _start_contacts(lay) == 0
+    gp = lay.goal_point()
+    start = np.asarray(lay.start_pos)
+    # modest distance: about ten 0.25 m steps; goal point at the start altitude
+    assert 2.0 <= np.linalg.norm(gp - start) <= 3.0 and gp[2] == start[2]
+    # the single obstacle blocks the straight line
+    (o,) = lay.obstacles
+    assert o.footprint_mask(np.array([o.center[0]]), np.array([0.0]), DRONE_HALF_EXTENTS[1])[0]
+    # the goal point leaves room between the hull and the board even at the reach radius
+    face_x = lay.goal_center[0] - lay.goal_thickness / 2
+    assert face_x - (gp[0] + 0.2) > np.hypot(*DRONE_HALF_EXTENTS[:2])
+
+
+def test_blocked_layout_is_not_solvable():
+    lay = thesis_layout()
+    wall = Obstacle(center=(1.25, 0.0, 1.25), half_size=(0.1, 2.6, 1.25))
+    from dataclasses import replace
+
+    assert not free_path_exists(replace(lay, obstacles=(wall,)))
+
+
+@pytest.mark.parametrize("split", ["train", "heldout"])
+def test_random_layouts_deterministic_solvable_and_start_free(split):
+    gen = RandomLayoutGenerator(split=split, seed=3)
+    again = RandomLayoutGenerator(split=split, seed=3)
+    for i in range(6):
+        lay = gen.layout(i)
+        assert lay == again.layout(i) and lay.fingerprint() == again.layout(i).fingerprint()
+        assert gen.split_of(lay) == split
+        assert free_path_exists(lay)
+        assert _start_contacts(lay) == 0, lay.name
+    assert gen.layout(0) != gen.layout(1)
+    assert RandomLayoutGenerator(split=split, seed=4).layout(0) != gen.layout(0)
+
+
+def test_splits_never_share_a_layout():
+    train = RandomLayoutGenerator("train", seed=0)
+    held = RandomLayoutGenerator("heldout", seed=0)
+    ft = {train.layout(i).fingerprint() for i in range(25)}
+    fh = {held.layout(i).fingerprint() for i in range(25)}
+    assert len(ft) == 25 and len(fh) == 25 and not (ft & fh)
+    # the split is a function of the layout itself
+    assert all(int(f, 16) % train.heldout_modulus != 0 for f in ft)
+    assert all(int(f, 16) % held.heldout_modulus == 0 for f in fh)
+
+
+def test_random_env_resets_draw_layouts_and_heldout_split():
+    from torchrl_causal.envs import DroneNavEnv
+
+    env = DroneNavEnv("random", split="heldout", n_layouts=1000, seed=0)
+    names = set()
+    for _ in range(3):
+        td = env.reset()
+        names.add(env.layout.name)
+        assert env.layout.name.startswith("heldout-")
+        assert not td["crashed"].item() and env.data.ncon == 0
+    assert len(names) >= 2
+    pinned = DroneNavEnv("random", layout_index=5, seed=1)
+    pinned.reset()
+    assert pinned.layout == RandomLayoutGenerator("train", seed=0).layout(5)
+    env.close()
+    pinned.close()
+
+
+def test_helipad_texture_in_memory():
+    img = helipad_image(64)
+    assert img.shape == (64, 64, 3) and img.dtype == np.uint8
+    marking = (img == 247).all(-1)
+    # the "H": two vertical bars and a cross bar, symmetric
+    assert marking[32, 20:26].all() and marking[32, 38:44].all() and marking[32, 26:38].all()
+    assert (marking == marking[:, ::-1]).mean() > 0.95
+
+
+@pytest.mark.parametrize(
+    "kwargs,name",
+    [({"split": "validation"}, "split"), ({"seed": -1}, "seed"), ({"max_obstacles": -1}, "max_obstacles")],
+)
+def test_generator_bad_options(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        RandomLayoutGenerator(**kwargs)
