@@ -10,8 +10,15 @@ Conventions:
     * the angle is in degrees, **positive when the goal is left of the image
       centre** (thesis: "far left (> 15)"), from the box centre and the
       camera's horizontal field of view (pinhole model);
-    * the distance is the median of the valid depth pixels inside the box
-      (robust to the background seen through/around the board's edges);
+    * the distance is the median metric z-depth of the valid depth pixels
+      inside the box (robust to the background seen through/around the
+      board's edges), converted to the range along the ray through the box
+      centre (``distance="range"``, the default: times
+      ``sqrt(1 + ((cx - W/2) / f)**2 + ((cy - H/2) / f)**2)`` for the box
+      centre ``(cx, cy)``, square pixels, focal ``f`` from the field of view),
+      so an off-axis goal is not reported closer than it is;
+      ``distance="depth"`` keeps the plain z-depth. Either is clipped to
+      ``max_depth``;
     * boxes are clipped to the image (NaN coordinates count as 0), so a box
       partly outside the image is measured on its visible part; NaN scores
       count as 0; a box without any valid depth pixel is not in sight;
@@ -27,6 +34,10 @@ Example:
     >>> m = meter(pixels, depth, gt_box=gt_box, gt_pixels=torch.tensor([400.0]))
     >>> bool(m.in_sight[0]), round(float(m.distance[0]), 2), round(float(m.angle[0]), 2)
     (True, 2.0, 0.0)
+    >>> off_axis = torch.tensor([[0.0, 32.0, 20.0, 52.0]])  # centre 32 px left of the axis
+    >>> m = meter(pixels, depth, gt_box=off_axis, gt_pixels=torch.tensor([400.0]))
+    >>> round(float(m.distance[0]), 2), round(float(m.angle[0]), 1)
+    (2.51, 37.3)
 """
 
 from __future__ import annotations
@@ -121,6 +132,8 @@ class GoalMeter:
         confidence_threshold: in sight when the best score is strictly above it
             (thesis: 0.7).
         max_depth: depth values above this (or non-finite, or <= 0) are invalid.
+        distance: ``"range"`` (along the ray through the box centre) or
+            ``"depth"`` (metric z-depth), see the module docs.
 
     Example:
         >>> meter = GoalMeter(SimGoalDetector(), hfov_deg=90.0, confidence_threshold=0.7)
@@ -134,7 +147,10 @@ class GoalMeter:
         hfov_deg: float,
         confidence_threshold: float = 0.7,
         max_depth: float = 10.0,
+        distance: str = "range",
     ):
+        if distance not in ("range", "depth"):
+            raise ValueError(f"distance must be 'range' or 'depth', got {distance!r}")
         if not 0.0 <= confidence_threshold <= 1.0:
             raise ValueError(
                 f"confidence_threshold must be in [0, 1], got {confidence_threshold!r}"
@@ -145,6 +161,14 @@ class GoalMeter:
         self.hfov_deg = float(hfov_deg)
         self.confidence_threshold = float(confidence_threshold)
         self.max_depth = float(max_depth)
+        self.distance = distance
+
+    def ray_scale(self, box: torch.Tensor, height: int, width: int) -> torch.Tensor:
+        """Range / z-depth ratio of the rays through box centres ``[..., 4]`` (square pixels)."""
+        focal = (width / 2.0) / math.tan(math.radians(self.hfov_deg) / 2.0)
+        u = ((box[..., 0] + box[..., 2]) / 2.0 - width / 2.0) / focal
+        v = ((box[..., 1] + box[..., 3]) / 2.0 - height / 2.0) / focal
+        return torch.sqrt(1.0 + u * u + v * v)
 
     def __call__(self, pixels, depth, **gt) -> GoalMeasurement:
         pixels = torch.as_tensor(pixels)
@@ -166,7 +190,7 @@ class GoalMeter:
         box = torch.nan_to_num(box, nan=0.0, posinf=float(max(H, W)), neginf=0.0)
         limits = torch.tensor([W, H, W, H], dtype=torch.float32)
         box = torch.minimum(box.clamp(min=0.0), limits)
-        # median valid depth inside each box
+        # median valid z-depth inside each box
         box_i = box.round().long()
         x0, y0, x1, y1 = box_i.unbind(-1)
         xs = torch.arange(W).view(1, 1, W)
@@ -180,6 +204,9 @@ class GoalMeter:
         valid = torch.isfinite(depth) & (depth > 0) & (depth <= self.max_depth) & inside
         masked = torch.where(valid, depth, torch.full_like(depth, float("nan")))
         dist = masked.reshape(B, -1).nanmedian(-1).values
+        if self.distance == "range":
+            dist = dist * self.ray_scale(box, H, W)
+        dist = dist.clamp(max=self.max_depth)  # like the depth itself
         in_sight = in_sight & torch.isfinite(dist)
         distance = torch.where(in_sight, dist, torch.full_like(dist, float("nan")))
         angle = torch.where(in_sight, box_angle_deg(box, W, self.hfov_deg), torch.zeros(B))
