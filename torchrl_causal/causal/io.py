@@ -5,7 +5,6 @@ The format follows the file suffix:
 * ``.xmlbif`` / ``.xml``: XMLBIF 0.3 through pgmpy's ``XMLBIFWriter`` /
   ``XMLBIFReader`` (readable by pgmpy, Weka, SamIam and other BN tools);
   values are written with full float precision, so a round trip is exact;
-* ``.bif``: BIF through pgmpy's ``BIFWriter`` / ``BIFReader``;
 * ``.json``: a plain JSON document ``{"format": "torchrl_causal.cbn/1",
   "nodes": {name: {"states": [...], "parents": [...], "cpt": [[...]]}}, ...}``
   with the CPT in pgmpy's ``TabularCPD`` layout (rows = states of the node,
@@ -13,7 +12,7 @@ The format follows the file suffix:
 
 State names are the schema's category labels; the ``known`` flag and the
 number of rows are kept in the JSON document (and in the learner's
-``learner.json`` for the XML formats).
+``learner.json`` for XMLBIF).
 
 Example:
     >>> import tempfile, os, numpy as np
@@ -39,7 +38,7 @@ from torchrl_causal.schema import DEFAULT_SCHEMA, VariableSchema
 
 __all__ = ["save_cbn", "load_cbn", "FORMATS"]
 
-FORMATS = (".xmlbif", ".xml", ".bif", ".json")
+FORMATS = (".xmlbif", ".xml", ".json")
 JSON_FORMAT = "torchrl_causal.cbn/1"
 
 
@@ -55,7 +54,7 @@ def save_cbn(cbn: CBN, path: str | os.PathLike) -> Path:
 
     Args:
         cbn: the network.
-        path: target file (``.xmlbif``, ``.xml``, ``.bif`` or ``.json``).
+        path: target file (``.xmlbif``, ``.xml`` or ``.json``).
 
     Returns:
         the path written.
@@ -83,20 +82,14 @@ def save_cbn(cbn: CBN, path: str | os.PathLike) -> Path:
         }
         path.write_text(json.dumps(doc, indent=1))
         return path
-    model = cbn.to_pgmpy()
-    if suffix == ".bif":
-        from pgmpy.readwrite import BIFWriter
+    from pgmpy.readwrite import XMLBIFWriter
 
-        BIFWriter(model).write_bif(str(path))
-    else:
-        from pgmpy.readwrite import XMLBIFWriter
-
-        XMLBIFWriter(model).write_xmlbif(str(path))
+    XMLBIFWriter(cbn.to_pgmpy()).write(str(path))
     return path
 
 
 def load_cbn(path: str | os.PathLike, schema: VariableSchema = DEFAULT_SCHEMA) -> CBN:
-    """Read a CBN written by :func:`save_cbn` (or any XMLBIF/BIF file over the schema's nodes).
+    """Read a CBN written by :func:`save_cbn` (or any XMLBIF file over the schema's nodes).
 
     Args:
         path: the file.
@@ -124,12 +117,6 @@ def load_cbn(path: str | os.PathLike, schema: VariableSchema = DEFAULT_SCHEMA) -
         edges = [(u, v) for v in nodes for u in parents[v]]
         return CBN(edges, cpts, parents, schema, int(doc.get("n_rows", 0)), bool(doc.get("known", True)),
                    float(doc.get("prior", 1.0)), dict(doc.get("meta", {})))
-    if suffix == ".bif":
-        from pgmpy.readwrite import BIFReader
+    from pgmpy.readwrite import XMLBIFReader
 
-        model = BIFReader(str(path)).get_model()
-    else:
-        from pgmpy.readwrite import XMLBIFReader
-
-        model = XMLBIFReader(str(path)).get_model()
-    return CBN.from_pgmpy(model, schema)
+    return CBN.from_pgmpy(XMLBIFReader(str(path)).get_model(), schema)

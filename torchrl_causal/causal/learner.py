@@ -260,13 +260,13 @@ class CausalLearner:
 
         Args:
             directory: output folder (created).
-            fmt: ``".xmlbif"`` (default), ``".bif"`` or ``".json"``.
+            fmt: ``".xmlbif"`` (default) or ``".json"``.
 
         Returns:
             the directory.
         """
-        if fmt not in (".xmlbif", ".xml", ".bif", ".json"):
-            raise ValueError(f"fmt must be '.xmlbif', '.xml', '.bif' or '.json', got {fmt!r}")
+        if fmt not in (".xmlbif", ".xml", ".json"):
+            raise ValueError(f"fmt must be '.xmlbif', '.xml' or '.json', got {fmt!r}")
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         summary = {"mode": self.mode, "n_relearns": self.n_relearns, "actions": {}}
