@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import torch
 from torchrl.envs.transforms import Compose
 
 from torchrl_causal.perception.goal import GoalMeter
@@ -16,11 +19,13 @@ _DEFAULT_MAX_DEPTH = 10.0
 
 
 def _env_max_depth(env):
-    for obj in (env, getattr(env, "base_env", None)):
-        value = getattr(obj, "max_depth", None)
-        if value is not None:
-            return float(value)
-    return None
+    """The depth sensor's range: the upper bound of the env's ``depth`` spec, if bounded."""
+    spec = env.observation_spec["depth"]
+    high = getattr(getattr(spec, "space", None), "high", None)
+    if high is None:
+        return None
+    high = float(torch.as_tensor(high).max())
+    return high if math.isfinite(high) and high > 0 else None
 
 
 def make_causal_transforms(
@@ -44,8 +49,9 @@ def make_causal_transforms(
     ``detector`` option: reward and features then change together.
 
     Args:
-        env: the env the stack will be appended to (optional); its
-            ``max_depth`` is used and it is checked to provide the goal keys.
+        env: the env (or batched / transformed env) the stack will be
+            appended to (optional); the upper bound of its ``depth`` spec is
+            used as ``max_depth`` and it is checked to provide the goal keys.
         n_points, exact, seed, center_frac, invalid_value: see
             :class:`~torchrl_causal.transforms.DepthSections`.
         thresholds: see :class:`~torchrl_causal.transforms.Thresholds`.
