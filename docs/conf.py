@@ -20,7 +20,13 @@ extensions = [
     "sphinx.ext.mathjax",
 ]
 autosummary_generate = True
-autodoc_default_options = {"members": True, "show-inheritance": True}
+# Package __init__ files re-export their submodules' classes; documenting them
+# there too would give every class two targets. Each class is documented once,
+# in the module that defines it.
+autodoc_default_options = {"members": True, "show-inheritance": True, "ignore-module-all": True}
+# Base classes from other projects (gymnasium, torch) have docstrings in other
+# styles; do not inherit them.
+autodoc_inherit_docstrings = False
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 napoleon_google_docstring = True
