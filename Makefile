@@ -28,7 +28,7 @@ train: venv
 	$(PY) recipes/train.py
 
 test: venv
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 tests
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 --doctest-modules torchrl_causal tests
 
 docs: venv
 	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
