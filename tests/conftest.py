@@ -1,0 +1,17 @@
+"""Test-session settings shared by every test file.
+
+``make test`` runs pytest with two xdist workers on a 2-core machine: each
+worker keeps torch (and OpenMP) to one thread, otherwise the workers
+oversubscribe the cores and a single Q-network forward pass slows ~20x.
+Rendering is headless (``MUJOCO_GL=egl``).
+"""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
