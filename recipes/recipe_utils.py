@@ -30,6 +30,7 @@ __all__ = [
     "Variant",
     "VARIANTS",
     "GATE_MODES",
+    "SCENES",
     "LOGGER_BACKENDS",
     "RUN_LAYOUT",
     "validate_config",
@@ -76,6 +77,12 @@ VARIANTS: dict[str, Variant] = {
     )
 }
 GATE_MODES = ("p", "pn", "v2")
+#: Scene names of the ``env.layout`` / ``env.eval_layouts`` options -> DroneNavEnv arguments.
+SCENES = {
+    "thesis": {"layout": "thesis"},  # the thesis scene (Fig. 2.3)
+    "train": {"layout": "random", "split": "train"},  # random layouts, training split
+    "heldout": {"layout": "random", "split": "heldout"},  # random layouts never trained on
+}
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
 
 #: Files and folders of a run folder, relative to it.
@@ -179,6 +186,10 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     episodes = _get(cfg, "collector.total_episodes")
     _require(episodes is None or (isinstance(episodes, int) and episodes > 0),
              "collector.total_episodes", episodes, "null or an integer > 0")
+    scene = _get(cfg, "env.layout")
+    _require(scene in SCENES, "env.layout", scene, f"one of {sorted(SCENES)}")
+    for scene in _get(cfg, "env.eval_layouts") or []:
+        _require(scene in SCENES, "env.eval_layouts", scene, f"scenes among {sorted(SCENES)}")
     logger = _get(cfg, "logger.backend")
     _require(logger in LOGGER_BACKENDS, "logger.backend", logger, f"one of {LOGGER_BACKENDS}")
     stop = _get(cfg, "checkpoint.stop_after_frames")

@@ -9,8 +9,8 @@ without re-training:
 * :func:`plot_reward_curves` -- one line per group (variant or k); with
   several seeds, the mean of the smoothed curves and a band of +-1 standard
   deviation across seeds.
-* :func:`edge_table` / :func:`table_markdown` -- Table 5.1: edges of the first
-  and last learned CBN in common with the defined (expert) one.
+* :func:`summary_markdown` -- a plain Markdown table (Table 5.1 itself comes
+  from :func:`torchrl_causal.causal.table_5_1`).
 * :func:`load_runs` -- finds run folders under a root and labels them.
 """
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import matplotlib
 
@@ -35,9 +35,7 @@ __all__ = [
     "stack_curves",
     "plot_reward_curves",
     "plot_run",
-    "edge_set",
-    "edge_table",
-    "table_markdown",
+    "summary_markdown",
 ]
 
 
@@ -190,65 +188,6 @@ def plot_run(run_dir: str | Path, label: str | None = None) -> list[Path]:
             )
         )
     return out
-
-
-def edge_set(dag) -> set[tuple[str, str]]:
-    """Directed edges of a DAG given as a networkx/pgmpy graph or an iterable of pairs."""
-    edges = dag.edges() if hasattr(dag, "edges") else dag
-    return {(str(u), str(v)) for u, v in edges}
-
-
-def edge_table(
-    expert: Mapping[str, object],
-    first: Mapping[str, object],
-    last: Mapping[str, object],
-    actions: Iterable[str] | None = None,
-) -> list[dict]:
-    """Rows of thesis Table 5.1 for each action.
-
-    Args:
-        expert: action name -> defined (expert) DAG.
-        first: action name -> first learned DAG.
-        last: action name -> last learned DAG.
-        actions: row order (default: ``expert``'s keys).
-
-    Returns:
-        One dict per action with the defined edge total, edges in common with
-        the first / last learned network and their totals, and the thesis's
-        "similarity": edges in common with the last network / defined total.
-    """
-    rows = []
-    for a in actions if actions is not None else expert:
-        e, f, l_ = edge_set(expert[a]), edge_set(first.get(a, ())), edge_set(last.get(a, ()))
-        rows.append(
-            {
-                "action": a,
-                "defined_edges": len(e),
-                "first_common": len(e & f),
-                "first_edges": len(f),
-                "last_common": len(e & l_),
-                "last_edges": len(l_),
-                "similarity_first": len(e & f) / len(e) if e else float("nan"),
-                "similarity_last": len(e & l_) / len(e) if e else float("nan"),
-            }
-        )
-    return rows
-
-
-def table_markdown(rows: Sequence[Mapping], title: str = "") -> str:
-    """Renders :func:`edge_table` rows as a Markdown table (thesis Table 5.1 layout)."""
-    lines = [f"### {title}", ""] if title else []
-    lines += [
-        "| Action | Edges in defined CBN | Common with first learned / its edges "
-        "| Common with last learned / its edges | Similarity (last common / defined) |",
-        "|---|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['action']} | {r['defined_edges']} | {r['first_common']}/{r['first_edges']} "
-            f"| {r['last_common']}/{r['last_edges']} | {r['similarity_last']:.3f} |"
-        )
-    return "\n".join(lines) + "\n"
 
 
 def summary_markdown(rows: Sequence[Mapping], columns: Sequence[str], title: str = "") -> str:

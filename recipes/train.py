@@ -47,25 +47,26 @@ CAUSAL_STORE_KEYS = ("causal_state", ("next", "causal_state"))
 
 
 # --------------------------------------------------------------------------- build
-def build_env(cfg: DictConfig, variant: ru.Variant, layout: str, device: str):
-    """DroneNavEnv on ``layout`` (+ the causal feature stack for CBN variants)."""
+def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str):
+    """DroneNavEnv on ``scene`` (+ the causal feature stack for CBN variants)."""
     from torchrl.envs import TransformedEnv
 
     from torchrl_causal.envs import DroneNavEnv
 
     env = DroneNavEnv(
-        layout=layout,
+        **ru.SCENES[scene],
         image_size=cfg.env.image_size,
         max_steps=cfg.env.max_steps,
+        seed=cfg.seed,
         device=device,
         **OmegaConf.to_container(cfg.env.options, resolve=True),
     )
     if variant.features:
         from torchrl_causal.transforms import make_causal_transforms
 
-        env = TransformedEnv(
-            env, make_causal_transforms(env, **OmegaConf.to_container(cfg.features.options))
-        )
+        options = OmegaConf.to_container(cfg.features.options, resolve=True)
+        options.setdefault("seed", cfg.seed)
+        env = TransformedEnv(env, make_causal_transforms(env, **options))
     return env
 
 
@@ -237,6 +238,8 @@ def train(cfg: DictConfig) -> dict:
     from torchrl.objectives import DQNLoss, HardUpdate
 
     device = cfg.device
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     import random
@@ -289,7 +292,7 @@ def train(cfg: DictConfig) -> dict:
         "next_eval": cfg.eval.interval_frames or math.inf,
         "next_ckpt": cfg.checkpoint.interval_frames or math.inf,
         "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
-        "time_causal": 0.0, "time_train": 0.0,
+        "time_extend": 0.0, "time_train": 0.0,
     }
     tracker = EpisodeTracker(gate_keys)
     logger_state = None
@@ -360,7 +363,10 @@ def train(cfg: DictConfig) -> dict:
         explorer.step(n)
         t0 = time.perf_counter()
         rb.extend(batch.select(*store_keys).clone())
-        st["time_causal"] += time.perf_counter() - t0 if hook is not None else 0.0
+        st["time_extend"] += time.perf_counter() - t0
+        if (variant.causal_mode == "defined" and hook.learner.n_relearns == 0
+                and st["frames"] >= init_random):
+            hook.relearn()  # end of the random warm-up: fit the expert CBNs' CPTs now
         if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
             st["n_relearns"] = hook.learner.n_relearns
             rel_csv.write({"relearn": st["n_relearns"], "frames": st["frames"],
@@ -406,7 +412,7 @@ def train(cfg: DictConfig) -> dict:
                 updater.step()
                 st["updates"] += 1
                 if logger is not None and st["updates"] % 100 == 0:
-                    logger.log_scalar("train/loss", float(loss_td["loss"]), step=st["frames"])
+                    logger.log_scalar("train/loss", float(loss_td["loss"].detach()), step=st["frames"])
         st["time_train"] += time.perf_counter() - t0
         if pbar is not None:
             pbar.update(n)
@@ -472,42 +478,61 @@ def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device):
 
 
 def write_outputs(cfg, variant, paths, actor, hook) -> dict:
-    """Final model, CBNs, plots and Table 5.1 into the run folder."""
+    """Final model, CBNs (+ drawings), plots and Table 5.1 into the run folder."""
     out: dict[str, Any] = {}
     torch.save(actor.state_dict(), paths["model"])
+    out["model"] = str(paths["model"])
     out["plots"] = [str(p) for p in results.plot_run(paths["model"].parent)]
     if hook is not None and hook.learner.n_relearns > 0:
+        from torchrl_causal.causal import expert_dags, table_5_1, write_table_5_1
+
         learner = hook.learner
         learner.save(paths["cbns"] / "last")
-        from torchrl_causal.causal.expert import expert_dags
-        from torchrl_causal.schema import ACTION_NAMES
-
-        history = learner.history
-        first, last = _named_dags(history[0]), _named_dags(history[-1])
-        rows = results.edge_table(_named_dags(expert_dags()), first, last, ACTION_NAMES)
-        table = results.table_markdown(
-            rows, f"Table 5.1 ({cfg.variant}, seed {cfg.seed}): learned vs defined CBN edges")
-        (paths["tables"] / "table_5_1.md").write_text(table)
-        out["table_5_1"] = str(paths["tables"] / "table_5_1.md")
-        out["cbn_drawings"] = [str(p) for p in _draw_cbns(learner, paths["cbns"])]
+        out["cbns"] = str(paths["cbns"])
+        out["cbn_drawings"] = [
+            str(p) for p in draw_cbns(learner.history_dags(-1), paths["cbns"] / "last", "last")
+        ]
+        if variant.causal_mode == "learned":
+            first = first_learned_dags(learner)
+            out["cbn_drawings"] += [
+                str(p) for p in draw_cbns(first, paths["cbns"] / "first", "first")
+            ]
+            rows = table_5_1(expert_dags(learner.schema), first, learner.history_dags(-1))
+            md, _ = write_table_5_1(rows, paths["tables"] / "table_5_1")
+            out["table_5_1"] = str(md)
     return out
 
 
-def _named_dags(dags) -> dict:
-    from torchrl_causal.schema import ACTION_NAMES
+def first_learned_dags(learner) -> dict:
+    """Per action, the DAG of the first relearn that ran a structure search for it.
 
-    if isinstance(dags, dict):
-        return {ACTION_NAMES[k] if isinstance(k, int) else k: v for k, v in dags.items()}
-    return {ACTION_NAMES[i]: d for i, d in enumerate(dags)}
+    The learner searches an action's structure only once it has ``min_rows``
+    transitions; earlier relearns record an empty DAG, which is not a
+    "first learned CBN" in the sense of Table 5.1. Actions never searched get [].
+    """
+    first = {}
+    for rec in learner.history:
+        for name, info in rec["actions"].items():
+            if name not in first and "score" in info:
+                first[name] = [tuple(e) for e in info["edges"]]
+    return {name: first.get(name, []) for name in learner.action_names}
 
 
-def _draw_cbns(learner, folder: Path) -> list[Path]:
-    from torchrl_causal.causal import draw_cbn  # library drawing of one DBN
+def draw_cbns(dags: dict, folder: Path, tag: str) -> list[Path]:
+    """One PNG per action (edges shared with the defined CBN drawn thick)."""
+    from torchrl_causal.causal import draw_cbn, expert_dags
 
+    import matplotlib
+
+    matplotlib.use("Agg")
+    expert = expert_dags()
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, dag in _named_dags(learner.dags()).items():
-        p = folder / f"last_{name}.png"
-        draw_cbn(dag, p, title=name)
+    for name, edges in dags.items():
+        p = folder / f"{name}.png"
+        shared = set(map(tuple, edges)) & set(map(tuple, expert.get(name, [])))
+        draw_cbn(edges, path=p, title=f"{name} ({tag} CBN, {len(edges)} edges)",
+                 highlight=shared)
         paths.append(p)
     return paths
 

@@ -127,25 +127,6 @@ def test_moving_average_and_seed_bands(tmp_path):
     assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
-def test_table_5_1_against_expert():
-    from torchrl_causal.causal.expert import expert_dags
-    from torchrl_causal.schema import ACTION_NAMES
-
-    expert = expert_dags()
-    totals = {a: len(results.edge_set(expert[a])) for a in ACTION_NAMES}
-    # thesis Table 5.1, "Total Edges given CBN"
-    assert totals == {"ascend": 14, "descend": 14, "forward": 14, "backward": 14,
-                      "left": 17, "right": 17, "turn_left": 16, "turn_right": 17}
-    first = {a: list(expert[a])[:2] + [("altitude_t", "reward")] for a in ACTION_NAMES}
-    last = {a: list(expert[a])[:5] for a in ACTION_NAMES}
-    rows = results.edge_table(expert, first, last, ACTION_NAMES)
-    fwd = rows[ACTION_NAMES.index("forward")]
-    assert (fwd["first_common"], fwd["last_common"], fwd["last_edges"]) == (2, 5, 5)
-    assert fwd["similarity_last"] == pytest.approx(5 / 14)
-    md = results.table_markdown(rows, "T")
-    assert md.count("\n|") == 2 + len(ACTION_NAMES) and "| forward | 14 | 2/3 | 5/5 |" in md
-
-
 def test_reproduce_plan_covers_protocol(tmp_path):
     plan = reproduce.run_plan(tmp_path, "full", 3, list(ru.VARIANTS), [100, 200, 400, 600])
     assert len(plan) == 5 * 3 + 3 * 3

@@ -1,0 +1,132 @@
+"""End-to-end smoke runs of recipes/train.py (real MuJoCo env, real causal learner)
+and the exact-resume test. Budgets are tiny: a few hundred frames per run."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = ROOT / "recipes" / "train.py"
+
+TINY = [
+    "collector.total_frames=240",
+    "env.max_steps=60",
+    "causal.k=80",
+    "causal.warmup_frames=40",
+    "loss.learning_starts=48",
+    "loss.updates_per_frame=0.125",
+    "loss.target_update_interval=10",
+    "buffer.size=300",
+    "buffer.batch_size=8",
+    "exploration.annealing_frames=200",
+    "eval.interval_frames=120",
+    "eval.episodes=1",
+    "checkpoint.interval_frames=100",
+    "progress=false",
+    "threads=1",
+    "++causal.options.min_rows=10",
+]
+
+
+def _run(args, timeout=300):
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), HYDRA_FULL_ERROR="1")
+    r = subprocess.run([sys.executable, str(TRAIN), *args], capture_output=True, text=True,
+                       env=env, timeout=timeout, cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return r
+
+
+@pytest.mark.parametrize("variant", ["dqn_image", "cbn_defined", "cbn_p", "cbn_pn", "cbn_v2"])
+def test_variant_runs_end_to_end(variant, tmp_path):
+    out = tmp_path / variant
+    r = _run(["--config-name", variant, f"output_dir={out}", *TINY])
+    assert f"Plots: {out / 'plots'}" in r.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["variant"] == variant and summary["frames"] == 240
+    eps = pd.read_csv(out / "episodes.csv")
+    assert len(eps) == summary["episodes"] >= 3
+    assert (eps["length"] <= 60).all() and eps["frames"].is_monotonic_increasing
+    assert set(eps["success"]) <= {0, 1} and set(eps["crash"]) <= {0, 1}
+    # a truncated episode ends at 60 steps; a crash/reach earlier
+    ended_early = eps["length"] < 60
+    assert ((eps["success"] + eps["crash"])[ended_early] == 1).all()
+    ev = pd.read_csv(out / "eval.csv")
+    assert sorted(set(ev["layout"])) == ["heldout", "thesis"]
+    assert sorted(set(ev["frames"])) == [120, 240]
+    assert ev["success_rate"].between(0, 1).all()
+    for name in ("reward_ma20.png", "reward_ma50.png", "success_ma50.png"):
+        assert (out / "plots" / name).read_bytes()[:4] == b"\x89PNG"
+    assert (out / "checkpoints" / "last.pt").is_file()
+    model = torch.load(out / "model.pt")
+    dense = [v for k, v in model.items() if "dense" in k and k.endswith("weight")][0]
+    n_features = 0 if variant == "dqn_image" else 9
+    assert dense.shape[1] == 64 * 7 * 7 + n_features  # Fig. 5.1 vs Fig. 5.2
+    if variant == "dqn_image":
+        assert "gate_frac_consulted" not in eps and not list((out / "cbns").iterdir())
+        return
+    rel = pd.read_csv(out / "relearns.csv")
+    assert len(rel) >= 2 and summary["n_relearns"] == len(rel)
+    assert eps["gate_frac_consulted"].between(0, 1).all()
+    # once tables exist the gate consults the CBN on some steps
+    assert eps["gate_frac_consulted"].iloc[-1] > 0 or eps["gate_frac_consulted"].sum() > 0
+    learned = json.loads((out / "cbns" / "last" / "learner.json").read_text())
+    assert len(learned["actions"]) == 8
+    assert len(list((out / "cbns" / "last").glob("*.xmlbif"))) == 8
+    assert len(list((out / "cbns" / "last").glob("*.png"))) == 8
+    if variant == "cbn_defined":
+        from torchrl_causal.causal import expert_dags
+
+        expert = expert_dags()
+        for name, info in learned["actions"].items():
+            assert sorted(map(tuple, info["edges"])) == sorted(map(tuple, expert[name]))
+    else:
+        table = (out / "tables" / "table_5_1.md").read_text()
+        assert table.count("\n| ") == 8 and "| forward | 14 |" in table
+        assert len(list((out / "cbns" / "first").glob("*.png"))) == 8
+
+
+def test_resume_continues_exactly(tmp_path):
+    """Stop a run after its first checkpoint, resume it, compare with an uninterrupted run."""
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    args = ["--config-name", "cbn_v2", *TINY, "seed=3", "collector.total_frames=280",
+            "checkpoint.interval_frames=90"]
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), HYDRA_FULL_ERROR="1")
+    procs = [
+        subprocess.Popen([sys.executable, str(TRAIN), *args, f"output_dir={full}"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env),
+        subprocess.Popen([sys.executable, str(TRAIN), *args, f"output_dir={cut}",
+                          "checkpoint.stop_after_frames=90"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env),
+    ]
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=300)
+        assert p.returncode == 0, stdout[-2000:] + stderr[-3000:]
+    assert "checkpoint.resume=true" in stdout  # the stopped run says how to resume
+    stopped = pd.read_csv(cut / "episodes.csv")
+    assert 0 < len(stopped) < len(pd.read_csv(full / "episodes.csv"))
+    assert not (cut / "summary.json").exists()
+    _run([*args, f"output_dir={cut}", "checkpoint.resume=true"])
+
+    for name in ("episodes.csv", "relearns.csv", "eval.csv"):
+        a, b = pd.read_csv(full / name), pd.read_csv(cut / name)
+        pd.testing.assert_frame_equal(a, b, obj=name)
+    assert len(pd.read_csv(full / "relearns.csv")) >= 2
+    ma, mb = torch.load(full / "model.pt"), torch.load(cut / "model.pt")
+    assert ma.keys() == mb.keys()
+    for k in ma:
+        assert torch.equal(ma[k], mb[k]), k
+    la = json.loads((full / "cbns" / "last" / "learner.json").read_text())
+    lb = json.loads((cut / "cbns" / "last" / "learner.json").read_text())
+    assert la == lb
+    sa = json.loads((full / "summary.json").read_text())
+    sb = json.loads((cut / "summary.json").read_text())
+    for key in ("frames", "episodes", "updates", "n_relearns"):
+        assert sa[key] == sb[key], key
