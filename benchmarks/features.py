@@ -2,7 +2,8 @@
 
 Prints one JSON line per configuration::
 
-    {"bench": "features", "stack": "...", "batch": 1, "ms_per_frame": ..., "ms_per_call": ...}
+    {"bench": "features", "stack": "...", "batch": 1, "ms_per_call": ..., "ms_per_frame": ...,
+     "torch_op_us": ...}
 
 The default stack is what a :class:`~torchrl_causal.envs.DroneNavEnv` uses
 (``DepthSections`` + ``Discretize``; the goal measurement is the env's own).
@@ -56,6 +57,23 @@ def time_stack(stack, batch: int, repeats: int) -> dict:
     return {"ms_per_call": round(best * 1e3, 4), "ms_per_frame": round(best * 1e3 / batch, 4)}
 
 
+def torch_op_floor_us(repeats: int = 20000) -> float:
+    """Cost of one tiny torch op (``x + 1`` on 9 floats) on this machine, in microseconds.
+
+    Printed beside the timings: at batch 1 the stack's cost is dominated by
+    per-op dispatch overhead, so this is the yardstick to compare machines
+    (and loaded vs. idle ones) with.
+    """
+    x = torch.zeros(9)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for _ in range(repeats // 5):
+            x + 1
+        best = min(best, (time.perf_counter() - t0) / (repeats // 5))
+    return round(best * 1e6, 2)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=2000)
@@ -70,12 +88,14 @@ def main(argv=None):
         stacks["goal+sections+discretize"] = make_causal_transforms(
             seed=0, exact=args.exact, goal_meter=meter
         )
+    floor = torch_op_floor_us()
     for name, stack in stacks.items():
         for batch in (1, 64):
             reps = args.repeats if batch == 1 else max(50, args.repeats // 10)
             res = time_stack(stack, batch, reps)
             print(json.dumps({"bench": "features", "stack": name, "exact": args.exact,
-                              "batch": batch, "threads": args.threads, **res}))
+                              "batch": batch, "threads": args.threads, **res,
+                              "torch_op_us": floor}))
 
 
 if __name__ == "__main__":

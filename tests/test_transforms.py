@@ -264,7 +264,12 @@ def test_goal_features_with_sim_detector_and_batch_dims():
     out = t(td)
     assert out["goal_in_sight"].shape == (3, 2, 1) and out["goal_in_sight"].dtype == torch.bool
     assert out["goal_in_sight"].sum() == 5 and not out["goal_in_sight"][1, 1]
-    assert out["goal_distance"][0, 0].item() == pytest.approx(3.0)
+    # range along the ray through the box centre (10, 30): z-depth 3 m times the ray's scale
+    f = 42.0  # focal length of an 84 px wide, 90 deg image
+    scale = math.sqrt(1 + ((10 - 42) / f) ** 2 + ((30 - 42) / f) ** 2)
+    assert out["goal_distance"][0, 0].item() == pytest.approx(3.0 * scale, rel=1e-5)
+    depth_only = GoalFeatures(GoalMeter(SimGoalDetector(20), hfov_deg=90.0, distance="depth"))
+    assert depth_only(td.clone())["goal_distance"][0, 0].item() == pytest.approx(3.0)
     assert out["goal_distance"][1, 1].item() == 0.0 and out["goal_angle"][1, 1].item() == 0.0
     # box centre x = 10 on an 84-wide, 90 deg image: left of centre -> positive
     expected = math.degrees(math.atan((42 - 10) / 42))
@@ -279,7 +284,7 @@ def test_goal_features_confidence_threshold_is_strict_and_best_box_wins():
     assert t.in_keys == ["pixels", "depth"]
     td = TensorDict({"pixels": torch.zeros(1, H, W, 3, dtype=torch.uint8), "depth": depth}, [1])
     assert not t(td)["goal_in_sight"].any()  # 0.7 is not > 0.7
-    t = GoalFeatures(GoalMeter(FixedDetector(boxes, [0.6, 0.95]), hfov_deg=60.0))
+    t = GoalFeatures(GoalMeter(FixedDetector(boxes, [0.6, 0.95]), hfov_deg=60.0, distance="depth"))
     out = t(td)
     assert out["goal_in_sight"].all() and out["goal_distance"].item() == pytest.approx(5.0)
     assert out["goal_angle"].item() < 0  # right of centre

@@ -198,17 +198,15 @@ class Discretize(Transform):
         )
         if in_sight.dtype != torch.bool:
             in_sight = in_sight > 0.5
-        in_sight = in_sight.reshape(*batch, 1)
-        x = torch.cat(
-            [
-                depth.to(torch.float32),
-                in_sight.to(torch.float32),
-                distance.reshape(*batch, 1).to(torch.float32),
-                angle.reshape(*batch, 1).to(torch.float32),
-                altitude.reshape(*batch, 1).to(torch.float32),
-            ],
-            -1,
-        )
+        col = (*batch, 1)
+        if in_sight.shape != col:
+            in_sight = in_sight.reshape(col)
+        cols = [depth, in_sight.to(torch.float32)]
+        for v in (distance, angle, altitude):
+            cols.append(v if v.shape == col else v.reshape(col))
+        x = torch.cat(cols, -1)  # promotes to float32 (or float64 inputs' dtype)
+        if x.dtype != torch.float32:
+            x = x.to(torch.float32)
         x = torch.where(x == x, x, nan_fill).clamp(lo, hi)  # x != x only for NaN
         features = x * (in_sight | keep_unseen)
         codes = ((features.unsqueeze(-1) > edges) * weights).sum(-1) + torch.where(
