@@ -116,10 +116,19 @@ def allowed_edges(schema: VariableSchema = DEFAULT_SCHEMA, synchronous: str = "f
 class BICScore:
     """pgmpy's discrete BIC over an integer-coded table, with cached local scores.
 
+    For each child, the rows are first compressed to the distinct combinations
+    of the child and its possible parents (``candidates``) with their counts:
+    with time tiers a ``t+1`` variable sees at most ``1728 x 3`` combinations
+    however many rows there are, so each score costs a weighted bincount over
+    those instead of over ``N`` rows. Counts stay integers and the scores are
+    exactly pgmpy's.
+
     Args:
         data: int codes ``[N, n_nodes]``, values in ``[0, index_cards[j])``.
         index_cards: cardinality used to index column ``j`` (the schema's).
         penalty_cards: cardinality used in the penalty (schema or observed).
+        candidates: ``candidates[j]``: the columns that may become parents of
+            ``j`` (``None``: all others).
 
     Example:
         >>> import numpy as np
@@ -128,18 +137,64 @@ class BICScore:
         -4.159
     """
 
-    def __init__(self, data: np.ndarray, index_cards: Sequence[int], penalty_cards: Sequence[int]):
+    def __init__(
+        self,
+        data: np.ndarray,
+        index_cards: Sequence[int],
+        penalty_cards: Sequence[int],
+        candidates: Sequence[Sequence[int]] | None = None,
+    ):
         data = np.asarray(data)
+        self.data = data.astype(np.int64)
         self.n_rows = data.shape[0]
-        self.cols = [np.ascontiguousarray(data[:, j], dtype=np.int64) for j in range(data.shape[1])]
+        n_cols = data.shape[1]
         self.index_cards = [int(c) for c in index_cards]
         self.penalty_cards = [int(c) for c in penalty_cards]
+        if candidates is None:
+            candidates = [[k for k in range(n_cols) if k != j] for j in range(n_cols)]
+        self.candidates = [sorted(int(k) for k in c) for c in candidates]
         self.half_log_n = 0.5 * math.log(self.n_rows) if self.n_rows > 0 else 0.0
         self._cache: dict = {}
         self._idx_cache: dict = {}
+        self._views: dict = {}
+        self._key_cache: dict = {}
         self.n_evaluations = 0
         k = np.arange(self.n_rows + 1, dtype=np.float64)
         self._xlogx = k * np.log(np.maximum(k, 1.0))
+
+    def _view(self, child: int):
+        """Distinct (child, candidate parents) combinations with counts, built once per child."""
+        view = self._views.get(child)
+        if view is not None:
+            return view
+        cols = self.candidates[child] + [child]
+        key, size = self._prefix_key(tuple(cols))
+        if size <= max(4 * self.n_rows, 1 << 16):
+            weights = np.bincount(key, minlength=size)
+            uniq = np.flatnonzero(weights)
+            weights = weights[uniq]
+        else:
+            uniq, weights = np.unique(key, return_counts=True)
+        columns = {}
+        rest = uniq
+        for c in reversed(cols):
+            columns[c] = rest % self.index_cards[c]
+            rest = rest // self.index_cards[c]
+        view = (columns, weights.astype(np.float64))
+        self._views[child] = view
+        return view
+
+    def _prefix_key(self, cols: tuple) -> tuple[np.ndarray, int]:
+        """Mixed-radix key of the columns ``cols`` (first slowest), prefixes shared between children."""
+        if not cols:
+            return np.zeros(self.n_rows, np.int64), 1
+        hit = self._key_cache.get(cols)
+        if hit is None:
+            key, size = self._prefix_key(cols[:-1])
+            c = cols[-1]
+            hit = (key * self.index_cards[c] + self.data[:, c], size * self.index_cards[c])
+            self._key_cache[cols] = hit
+        return hit
 
     def local(self, child: int, parents: Iterable[int]) -> float:
         """Local BIC of ``child`` given ``parents`` (order does not matter)."""
@@ -148,15 +203,18 @@ class BICScore:
         hit = self._cache.get(key)
         if hit is not None:
             return hit
+        columns, weights = self._view(child)
+        if any(p not in columns for p in parents):
+            raise ValueError(f"parents {parents} of column {child} are not among its candidates")
         if parents:
             # extend the cached index of (child, all parents but the last) by one column
             base, size = self._index(child, parents[:-1])
             last = parents[-1]
-            idx = base + self.cols[last] * size
+            idx = base + columns[last] * size
             size *= self.index_cards[last]
         else:
-            idx, size = self.cols[child], self.index_cards[child]
-        score = self._score(child, parents, idx, size)
+            idx, size = columns[child], self.index_cards[child]
+        score = self._score(child, parents, idx, size, weights)
         self._cache[key] = score
         return score
 
@@ -165,20 +223,21 @@ class BICScore:
         key = (child, parents)
         hit = self._idx_cache.get(key)
         if hit is None:
+            columns = self._view(child)[0]
             if not parents:
-                hit = (self.cols[child], self.index_cards[child])
+                hit = (columns[child], self.index_cards[child])
             else:
                 base, size = self._index(child, parents[:-1])
-                hit = (base + self.cols[parents[-1]] * size, size * self.index_cards[parents[-1]])
+                hit = (base + columns[parents[-1]] * size, size * self.index_cards[parents[-1]])
             if len(self._idx_cache) > 256:
                 self._idx_cache.clear()
             self._idx_cache[key] = hit
         return hit
 
-    def _score(self, child: int, parents: tuple, idx: np.ndarray, size: int) -> float:
+    def _score(self, child: int, parents: tuple, idx: np.ndarray, size: int, weights: np.ndarray) -> float:
         self.n_evaluations += 1
         r = self.index_cards[child]
-        counts = np.bincount(idx, minlength=size)
+        counts = np.bincount(idx, weights=weights, minlength=size).astype(np.int64)
         n_j = counts.reshape(-1, r).sum(1)  # rows = parent configurations
         # sum_jk N_jk log N_jk - sum_j N_j log N_j, with a k*log(k) lookup table
         ll = float(self._xlogx[counts].sum() - self._xlogx[n_j].sum())
@@ -237,38 +296,24 @@ def _hill_climb(
     acyclic = _is_acyclic(allowed)
     cand = [np.flatnonzero(allowed[:, y]).tolist() for y in range(n)]
     tabu: deque = deque(maxlen=tabu_length)
+    node_moves: dict = {}
     moves = 0
     for _ in range(int(max_iter)):
         tabu_set = set(tabu)
         reach = None if acyclic else _reachability(parents)
         best_op, best_delta = None, -math.inf
-        # Step 1: additions
+        # Step 1: additions, Step 2: removals. The deltas of node y only change
+        # when y's parents do: they are cached per (y, parents) and filtered here.
         for y in range(n):
             py = parents[y]
-            if len(py) + 1 > max_indegree:
-                continue
-            base = None
-            for x in cand[y]:
-                if x in py or y in parents[x]:
-                    continue
-                if reach is not None and reach[y][x]:
-                    continue
-                if ("+", (x, y)) in tabu_set:
-                    continue
-                if base is None:
-                    base = score.local(y, py)
-                delta = score.local(y, py + [x]) - base
-                if delta > best_delta:
-                    best_op, best_delta = ("+", (x, y)), delta
-        # Step 2: removals
-        for y in range(n):
-            py = parents[y]
-            for x in py:
-                if ("-", (x, y)) in tabu_set:
-                    continue
-                delta = score.local(y, [p for p in py if p != x]) - score.local(y, py)
-                if delta > best_delta:
-                    best_op, best_delta = ("-", (x, y)), delta
+            moves_y = node_moves.get((y, tuple(py)))
+            if moves_y is None:
+                moves_y = _node_moves(score, y, py, cand[y], parents, reach, max_indegree)
+                if acyclic:  # legality of y's moves depends on y's parents only
+                    node_moves[(y, tuple(py))] = moves_y
+            for op, delta in moves_y:
+                if delta > best_delta and op not in tabu_set:
+                    best_op, best_delta = op, delta
         # Step 3: reversals (only possible when same-tier edges are allowed)
         if not acyclic:
             for y in range(n):
@@ -303,6 +348,20 @@ def _hill_climb(
             tabu.append(best_op)
         moves += 1
     return parents, moves
+
+
+def _node_moves(score, y, py, cand_y, parents, reach, max_indegree) -> list:
+    """Legal additions then removals of edges into ``y`` (ignoring tabu) with their score change."""
+    out = []
+    base = score.local(y, py)
+    if len(py) + 1 <= max_indegree:
+        for x in cand_y:
+            if x in py or y in parents[x] or (reach is not None and reach[y][x]):
+                continue
+            out.append((("+", (x, y)), score.local(y, py + [x]) - base))
+    for x in py:
+        out.append((("-", (x, y)), score.local(y, [p for p in py if p != x]) - base))
+    return out
 
 
 def _is_acyclic(adj: np.ndarray) -> bool:
@@ -412,7 +471,7 @@ def learn_structure(
     t0 = time.perf_counter()
     if backend == "fast":
         pen = cards_schema if cardinality == "schema" else _observed_cards(data)
-        score = BICScore(data, cards_schema, pen)
+        score = BICScore(data, cards_schema, pen, [np.flatnonzero(allowed[:, j]) for j in range(len(nodes))])
         start = [[] for _ in nodes]
         for u, v in start_ids:
             start[v].append(u)

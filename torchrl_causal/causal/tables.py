@@ -66,6 +66,9 @@ class RewardTables:
         self.known = known
         self.schema = schema
         self._strides = torch.tensor(schema.strides(), dtype=torch.int64, device=p_pos.device)
+        # state-major copies for the hot path: one gather gives [..., n_actions] directly
+        self._pos_by_state = p_pos.T.contiguous()
+        self._neg_by_state = (1.0 - p_pos).T.contiguous()
 
     @property
     def n_actions(self) -> int:
@@ -87,11 +90,15 @@ class RewardTables:
         Returns:
             ``(p_pos [..., A], p_neg [..., A], known [..., A])``.
         """
-        idx = (causal_state.long() * self._strides.to(causal_state.device)).sum(-1)
-        p_pos = self.p_pos.to(causal_state.device).index_select(1, idx.reshape(-1))
-        p_pos = p_pos.T.reshape(*idx.shape, self.n_actions)
-        known = self.known.to(causal_state.device).expand(*idx.shape, self.n_actions)
-        return p_pos, 1.0 - p_pos, known
+        if causal_state.device != self._strides.device:
+            return self.to(causal_state.device).lookup(causal_state)
+        codes = causal_state if causal_state.dtype == torch.int64 else causal_state.long()
+        if codes.device.type == "cpu":
+            idx = codes.matmul(self._strides)  # one kernel for the mixed-radix index
+        else:
+            idx = (codes * self._strides).sum(-1)
+        known = self.known.expand(*idx.shape, self.n_actions)
+        return self._pos_by_state[idx], self._neg_by_state[idx], known
 
     def state_dict(self) -> dict:
         return {"p_pos": self.p_pos.cpu(), "known": self.known.cpu()}
