@@ -187,7 +187,7 @@ class DepthSections(Transform):
         return self.seed
 
     def _tables(self, H: int, W: int, device):
-        key = (H, W, str(device))
+        key = (H, W, device)
         tab = self._cache.get(key)
         if tab is None:
             masks = section_masks(H, W, self.center_frac, device=device)
@@ -217,6 +217,10 @@ class DepthSections(Transform):
         block) and consumed frame by frame, so the stream of sampled pixels
         depends only on the seed, not on how frames are batched.
         """
+        pool, pos = tab.get("pool"), tab.get("pos", 0)
+        if pool is not None and pos + B <= pool.shape[0]:  # fast path
+            tab["pos"] = pos + B
+            return pool[pos : pos + B]
         parts, need = [], B
         while need > 0:
             pool = tab.get("pool")
