@@ -163,6 +163,32 @@ class GoalMeter:
         self.max_depth = float(max_depth)
         self.distance = distance
 
+    #: up to this batch size, medians are taken on per-frame crops (cheaper than full masks)
+    _CROP_MAX_BATCH = 4
+
+    def _median_crops(self, depth: torch.Tensor, box_i: torch.Tensor) -> torch.Tensor:
+        out = []
+        for d, (x0, y0, x1, y1) in zip(depth, box_i.tolist()):
+            crop = d[y0:y1, x0:x1]
+            v = crop[(crop > 0) & (crop <= self.max_depth)]  # NaN and +-inf fail these
+            out.append(v.median() if v.numel() else d.new_tensor(float("nan")))
+        return torch.stack(out) if out else depth.new_zeros(0)
+
+    def _median_masked(self, depth: torch.Tensor, box_i: torch.Tensor) -> torch.Tensor:
+        B, H, W = depth.shape
+        x0, y0, x1, y1 = box_i.unbind(-1)
+        xs = torch.arange(W, device=depth.device).view(1, 1, W)
+        ys = torch.arange(H, device=depth.device).view(1, H, 1)
+        inside = (
+            (xs >= x0.view(B, 1, 1))
+            & (xs < x1.view(B, 1, 1))
+            & (ys >= y0.view(B, 1, 1))
+            & (ys < y1.view(B, 1, 1))
+        )
+        valid = (depth > 0) & (depth <= self.max_depth) & inside
+        masked = torch.where(valid, depth, torch.full_like(depth, float("nan")))
+        return masked.reshape(B, -1).nanmedian(-1).values
+
     def ray_scale(self, box: torch.Tensor, height: int, width: int) -> torch.Tensor:
         """Range / z-depth ratio of the rays through box centres ``[..., 4]`` (square pixels)."""
         focal = (width / 2.0) / math.tan(math.radians(self.hfov_deg) / 2.0)
@@ -190,20 +216,12 @@ class GoalMeter:
         box = torch.nan_to_num(box, nan=0.0, posinf=float(max(H, W)), neginf=0.0)
         limits = torch.tensor([W, H, W, H], dtype=torch.float32)
         box = torch.minimum(box.clamp(min=0.0), limits)
-        # median valid z-depth inside each box
+        # median valid z-depth inside each box (valid: finite, > 0, <= max_depth)
         box_i = box.round().long()
-        x0, y0, x1, y1 = box_i.unbind(-1)
-        xs = torch.arange(W).view(1, 1, W)
-        ys = torch.arange(H).view(1, H, 1)
-        inside = (
-            (xs >= x0.view(B, 1, 1))
-            & (xs < x1.view(B, 1, 1))
-            & (ys >= y0.view(B, 1, 1))
-            & (ys < y1.view(B, 1, 1))
-        )
-        valid = torch.isfinite(depth) & (depth > 0) & (depth <= self.max_depth) & inside
-        masked = torch.where(valid, depth, torch.full_like(depth, float("nan")))
-        dist = masked.reshape(B, -1).nanmedian(-1).values
+        if B <= self._CROP_MAX_BATCH:
+            dist = self._median_crops(depth, box_i)
+        else:
+            dist = self._median_masked(depth, box_i)
         if self.distance == "range":
             dist = dist * self.ray_scale(box, H, W)
         dist = dist.clamp(max=self.max_depth)  # like the depth itself
