@@ -204,8 +204,8 @@ class GoalMeter:
         boxes = torch.as_tensor(boxes, dtype=torch.float32).reshape(B, -1, 4)
         scores = torch.as_tensor(scores, dtype=torch.float32).reshape(B, -1)
         if scores.shape[-1] == 0:
-            conf = torch.zeros(B)
-            box = torch.zeros(B, 4)
+            conf = torch.zeros(B, device=depth.device)
+            box = torch.zeros(B, 4, device=depth.device)
         else:
             conf, best = scores.max(-1)
             box = boxes.gather(1, best.view(B, 1, 1).expand(B, 1, 4)).squeeze(1)
@@ -214,7 +214,7 @@ class GoalMeter:
         # clip boxes to the image before any integer cast (NaN -> 0, +-inf -> border):
         # the measurement only uses the visible part of a box
         box = torch.nan_to_num(box, nan=0.0, posinf=float(max(H, W)), neginf=0.0)
-        limits = torch.tensor([W, H, W, H], dtype=torch.float32)
+        limits = torch.tensor([W, H, W, H], dtype=torch.float32, device=depth.device)
         box = torch.minimum(box.clamp(min=0.0), limits)
         # median valid z-depth inside each box (valid: finite, > 0, <= max_depth)
         box_i = box.round().long()
@@ -227,5 +227,5 @@ class GoalMeter:
         dist = dist.clamp(max=self.max_depth)  # like the depth itself
         in_sight = in_sight & torch.isfinite(dist)
         distance = torch.where(in_sight, dist, torch.full_like(dist, float("nan")))
-        angle = torch.where(in_sight, box_angle_deg(box, W, self.hfov_deg), torch.zeros(B))
+        angle = torch.where(in_sight, box_angle_deg(box, W, self.hfov_deg), torch.zeros_like(dist))
         return GoalMeasurement(in_sight, distance, angle, conf, box)

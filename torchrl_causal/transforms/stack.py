@@ -39,6 +39,7 @@ def make_causal_transforms(
     center_frac: float = 0.5,
     invalid_value: float | None = None,
     goal_meter: GoalMeter | None = None,
+    device=None,
 ) -> Compose:
     """Builds the whole feature stack: ``DepthSections`` then ``Discretize``.
 
@@ -60,6 +61,7 @@ def make_causal_transforms(
             :class:`~torchrl_causal.perception.goal.GoalMeter`; a
             :class:`~torchrl_causal.transforms.GoalFeatures` step is then added
             first. Must be None when the env already writes the goal keys.
+        device: device of the pixel sampler (default: the env's device, else CPU).
 
     Returns:
         a :class:`~torchrl.envs.transforms.Compose` writing ``depth_sections``,
@@ -100,6 +102,8 @@ def make_causal_transforms(
                 f"env={type(env).__name__} writes no {_GOAL_KEYS}; pass goal_meter=GoalMeter(...)"
             )
         env_md = _env_max_depth(env)
+        if device is None:
+            device = env.device
     if max_depth is None:
         max_depth = env_md if env_md is not None else _DEFAULT_MAX_DEPTH
     steps = []
@@ -113,6 +117,7 @@ def make_causal_transforms(
             invalid_value=invalid_value,
             center_frac=center_frac,
             seed=seed,
+            device=device,
         )
     )
     steps.append(Discretize(thresholds, max_depth=max_depth))
