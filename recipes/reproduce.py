@@ -58,10 +58,10 @@ MODES = {
     "reduced": {
         "seeds": 2,
         "overrides": [
-            "collector.total_frames=3000", "exploration.annealing_frames=2000",
-            "loss.learning_starts=300", "env.max_steps=100", "buffer.size=3000",
+            "collector.total_frames=2000", "exploration.annealing_frames=1500",
+            "loss.learning_starts=300", "env.max_steps=100", "buffer.size=2000",
             "eval.interval_frames=0", "eval.episodes=2", "checkpoint.interval_frames=0",
-            "progress=false",
+            "progress=false", "threads=1",
         ],
     },
 }

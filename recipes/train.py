@@ -39,6 +39,8 @@ import recipe_utils as ru  # noqa: E402
 import results  # noqa: E402
 
 CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
+# ``${or_else:a,b}``: a unless it is null/empty, else b (used for hydra.run.dir).
+OmegaConf.register_new_resolver("or_else", lambda a, b: a if a else b, replace=True)
 
 #: Keys kept in the replay buffer (pixels stay uint8); everything else is dropped.
 STORE_KEYS = ("pixels", "action", ("next", "pixels"), ("next", "reward"),
@@ -171,6 +173,28 @@ class EpisodeTracker:
         self.reward, self.length, self.gate = sd["reward"], sd["length"], dict(sd["gate"])
 
 
+class _ForwardTimer:
+    """Wall time spent in a module's forward calls (forward pre/post hooks)."""
+
+    def __init__(self, module):
+        self.seconds = 0.0
+        self._t0 = 0.0
+        self._handles = [
+            module.register_forward_pre_hook(self._pre),
+            module.register_forward_hook(self._post),
+        ]
+
+    def _pre(self, *_):
+        self._t0 = time.perf_counter()
+
+    def _post(self, *_):
+        self.seconds += time.perf_counter() - self._t0
+
+    def remove(self):
+        for h in self._handles:
+            h.remove()
+
+
 def _flag(td, key) -> bool:
     val = td.get(key, None)
     return bool(val.any()) if val is not None else False
@@ -292,7 +316,7 @@ def train(cfg: DictConfig) -> dict:
         "next_eval": cfg.eval.interval_frames or math.inf,
         "next_ckpt": cfg.checkpoint.interval_frames or math.inf,
         "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
-        "time_extend": 0.0, "time_train": 0.0,
+        "time_extend": 0.0, "time_train": 0.0, "time_collect": 0.0,
     }
     tracker = EpisodeTracker(gate_keys)
     logger_state = None
@@ -333,8 +357,9 @@ def train(cfg: DictConfig) -> dict:
         rb.loads(paths["buffer"])
         if hook is not None:
             hook.load_state_dict(ckpt["hook"])
-        collector._frames = ckpt["collector"]["frames"]
-        collector._iter = ckpt["collector"]["iter"]
+        collector.load_state_dict(ckpt["collector"], strict=False)  # frames, iter, traj ids
+        if tracker.length:  # a final checkpoint may fall mid-episode: that episode is dropped
+            tracker.reset()
         ep_csv.truncate(ckpt["rows"]["episodes"])
         eval_csv.truncate(ckpt["rows"]["eval"])
         rel_csv.truncate(ckpt["rows"]["relearns"])
@@ -353,10 +378,16 @@ def train(cfg: DictConfig) -> dict:
         pbar = tqdm(total=total_frames, initial=st["frames"], desc=cfg.variant,
                     unit="frame", dynamic_ncols=True, mininterval=1.0)
     stopped_early = False
+    gate_timer = _ForwardTimer(explorer) if hook is not None else None
+    frames_at_start = st["frames"]
+    causal_at_start = (hook.stats["add_seconds"] + hook.stats["relearn_seconds"]
+                       if hook is not None else 0.0)
     t_start = time.perf_counter()
     last_reward = float("nan")
 
+    t_last = time.perf_counter()
     for batch in collector:
+        st["time_collect"] += time.perf_counter() - t_last
         batch = batch.reshape(-1)
         n = batch.numel()
         st["frames"] += n
@@ -439,17 +470,27 @@ def train(cfg: DictConfig) -> dict:
                 break
         if finished:
             break
+        t_last = time.perf_counter()
     if pbar is not None:
         pbar.close()
     collector.shutdown()
     wall = time.perf_counter() - t_start
 
+    if gate_timer is not None:
+        gate_timer.remove()
     summary = {
         "variant": cfg.variant, "seed": cfg.seed, "k": cfg.causal.k,
         "frames": st["frames"], "episodes": st["episodes"], "updates": st["updates"],
         "n_relearns": st["n_relearns"], "stopped_early": stopped_early,
         "output_dir": str(out), "plots_dir": str(paths["plots"]),
-        "wall_time_s": wall,
+        # timings of this session's training loop (a resumed run counts its own part)
+        "loop_seconds": wall,
+        "loop_frames_per_second": (st["frames"] - frames_at_start) / wall if wall > 0 else None,
+        "optimisation_seconds": st["time_train"],
+        "collection_seconds": st["time_collect"],  # policy (incl. gate) + env + features
+        "causal_learning_seconds": (hook.stats["add_seconds"] + hook.stats["relearn_seconds"]
+                                    - causal_at_start) if hook is not None else 0.0,
+        "gating_seconds": gate_timer.seconds if gate_timer is not None else 0.0,
     }
     if stopped_early:
         print(f"Stopped after {st['frames']} frames (checkpoint.stop_after_frames); resume with "
@@ -489,14 +530,16 @@ def write_outputs(cfg, variant, paths, actor, hook) -> dict:
         learner = hook.learner
         learner.save(paths["cbns"] / "last")
         out["cbns"] = str(paths["cbns"])
-        out["cbn_drawings"] = [
-            str(p) for p in draw_cbns(learner.history_dags(-1), paths["cbns"] / "last", "last")
-        ]
-        if variant.causal_mode == "learned":
-            first = first_learned_dags(learner)
-            out["cbn_drawings"] += [
-                str(p) for p in draw_cbns(first, paths["cbns"] / "first", "first")
+        first = first_learned_dags(learner) if variant.causal_mode == "learned" else None
+        if cfg.outputs.draw_cbns:
+            out["cbn_drawings"] = [
+                str(p) for p in draw_cbns(learner.history_dags(-1), paths["cbns"] / "last", "last")
             ]
+            if first is not None:
+                out["cbn_drawings"] += [
+                    str(p) for p in draw_cbns(first, paths["cbns"] / "first", "first")
+                ]
+        if first is not None:
             rows = table_5_1(expert_dags(learner.schema), first, learner.history_dags(-1))
             md, _ = write_table_5_1(rows, paths["tables"] / "table_5_1")
             out["table_5_1"] = str(md)
@@ -532,7 +575,7 @@ def draw_cbns(dags: dict, folder: Path, tag: str) -> list[Path]:
         p = folder / f"{name}.png"
         shared = set(map(tuple, edges)) & set(map(tuple, expert.get(name, [])))
         draw_cbn(edges, path=p, title=f"{name} ({tag} CBN, {len(edges)} edges)",
-                 highlight=shared)
+                 highlight=shared, dpi=90)
         paths.append(p)
     return paths
 

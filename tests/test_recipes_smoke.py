@@ -27,7 +27,7 @@ TINY = [
     "buffer.size=300",
     "buffer.batch_size=8",
     "exploration.annealing_frames=200",
-    "eval.interval_frames=120",
+    "eval.interval_frames=0",
     "eval.episodes=1",
     "checkpoint.interval_frames=100",
     "progress=false",
@@ -47,7 +47,9 @@ def _run(args, timeout=300):
 @pytest.mark.parametrize("variant", ["dqn_image", "cbn_defined", "cbn_p", "cbn_pn", "cbn_v2"])
 def test_variant_runs_end_to_end(variant, tmp_path):
     out = tmp_path / variant
-    r = _run(["--config-name", variant, f"output_dir={out}", *TINY])
+    # evaluation at intervals is exercised by one variant (the code is shared)
+    every = ["eval.interval_frames=120"] if variant == "cbn_v2" else []
+    r = _run(["--config-name", variant, f"output_dir={out}", *TINY, *every])
     assert f"Plots: {out / 'plots'}" in r.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["variant"] == variant and summary["frames"] == 240
@@ -60,7 +62,7 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     assert ((eps["success"] + eps["crash"])[ended_early] == 1).all()
     ev = pd.read_csv(out / "eval.csv")
     assert sorted(set(ev["layout"])) == ["heldout", "thesis"]
-    assert sorted(set(ev["frames"])) == [120, 240]
+    assert sorted(set(ev["frames"])) == ([120, 240] if variant == "cbn_v2" else [240])
     assert ev["success_rate"].between(0, 1).all()
     for name in ("reward_ma20.png", "reward_ma50.png", "success_ma50.png"):
         assert (out / "plots" / name).read_bytes()[:4] == b"\x89PNG"
@@ -97,7 +99,8 @@ def test_resume_continues_exactly(tmp_path):
     """Stop a run after its first checkpoint, resume it, compare with an uninterrupted run."""
     full, cut = tmp_path / "full", tmp_path / "cut"
     args = ["--config-name", "cbn_v2", *TINY, "seed=3", "collector.total_frames=280",
-            "checkpoint.interval_frames=90"]
+            "checkpoint.interval_frames=90", "eval.interval_frames=100",
+            "env.eval_layouts=[thesis]", "outputs.draw_cbns=false"]
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), HYDRA_FULL_ERROR="1")
     procs = [
         subprocess.Popen([sys.executable, str(TRAIN), *args, f"output_dir={full}"],
