@@ -133,3 +133,19 @@ def test_resume_continues_exactly(tmp_path):
     sb = json.loads((cut / "summary.json").read_text())
     for key in ("frames", "episodes", "updates", "n_relearns"):
         assert sa[key] == sb[key], key
+
+    # reproduce.py's aggregation over real run folders (two seeds of one variant)
+    import shutil
+
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import reproduce
+
+    root = tmp_path / "repro"
+    shutil.copytree(full, root / "variants" / "cbn_v2" / "seed_0")
+    shutil.copytree(cut, root / "variants" / "cbn_v2" / "seed_1")
+    out = reproduce.aggregate(root)
+    names = sorted(Path(f).name for f in out["figures"])
+    assert names == ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_variants.png"]
+    summary_md = (root / "tables" / "summary.md").read_text()
+    assert "| CBN-DQN V2 | 2 |" in summary_md and "eval_success_thesis" in summary_md
+    assert (root / "tables" / "table_5_1_seed_3.md").exists()  # both copies ran seed 3
