@@ -192,6 +192,13 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
         _require(scene in SCENES, "env.eval_layouts", scene, f"scenes among {sorted(SCENES)}")
     logger = _get(cfg, "logger.backend")
     _require(logger in LOGGER_BACKENDS, "logger.backend", logger, f"one of {LOGGER_BACKENDS}")
+    package = {"tensorboard": "tensorboard", "wandb": "wandb"}.get(logger)
+    if package is not None:
+        import importlib.util
+
+        _require(importlib.util.find_spec(package) is not None, "logger.backend", logger,
+                 f"an installed logger, but the {package!r} package is not installed "
+                 "(use logger.backend=csv)")
     stop = _get(cfg, "checkpoint.stop_after_frames")
     _require(stop is None or (isinstance(stop, int) and stop > 0),
              "checkpoint.stop_after_frames", stop, "null or an integer > 0")

@@ -65,6 +65,18 @@ def test_bad_input_fails_before_training(override, needle, tmp_path):
     assert not (out / "config.yaml").exists() and not (out / "episodes.csv").exists()
 
 
+def test_logger_backend_must_be_installed(tmp_path):
+    import importlib.util
+
+    for backend in ("tensorboard", "wandb"):
+        cfg = _cfg("cbn_v2", [f"output_dir={tmp_path}", f"logger.backend={backend}"])
+        if importlib.util.find_spec(backend) is None:
+            with pytest.raises(ValueError, match=f"logger.backend='{backend}'.*not installed"):
+                ru.validate_config(cfg, tmp_path)
+        else:
+            assert ru.validate_config(cfg, tmp_path).name == "cbn_v2"
+
+
 def test_unwritable_output_dir(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
