@@ -86,6 +86,12 @@ def compare_dags(
         :class:`GraphComparison`. Markov-blanket precision is 1.0 when the
         learned blanket is empty (nothing claimed), recall is 1.0 when the
         reference blanket is empty.
+
+    Example:
+        >>> c = compare_dags([("a_t", "a_t1"), ("a_t1", "reward")],
+        ...                  [("a_t", "a_t1"), ("a_t", "reward")])
+        >>> c.common, c.n_learned, c.n_reference, c.shd
+        (1, 2, 2, 2)
     """
     a, b = set(map(tuple, learned)), set(map(tuple, reference))
     mb_a, mb_b = set(markov_blanket(a, node)), set(markov_blanket(b, node))

@@ -69,6 +69,14 @@ def draw_cbn(
 
     Returns:
         the matplotlib ``Figure``.
+
+    Example:
+        >>> import tempfile, os
+        >>> from torchrl_causal.causal import expert_dags
+        >>> png = os.path.join(tempfile.mkdtemp(), "forward.png")
+        >>> fig = draw_cbn(expert_dags()["forward"], path=png, title="forward", hide_isolated=True)
+        >>> os.path.getsize(png) > 0
+        True
     """
     import networkx as nx
     from matplotlib.figure import Figure

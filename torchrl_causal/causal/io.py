@@ -58,6 +58,17 @@ def save_cbn(cbn: CBN, path: str | os.PathLike) -> Path:
 
     Returns:
         the path written.
+
+    Example:
+        >>> import tempfile, os
+        >>> from torchrl_causal.causal import expert_dags
+        >>> from torchrl_causal.causal.inference import fit_cbn, random_cbn
+        >>> from torchrl_causal.schema import DEFAULT_SCHEMA
+        >>> data = random_cbn(expert_dags()["forward"], seed=0).sample(500, seed=1)
+        >>> cbn = fit_cbn(expert_dags()["forward"], data, DEFAULT_SCHEMA)
+        >>> path = save_cbn(cbn, os.path.join(tempfile.mkdtemp(), "forward.json"))
+        >>> sorted(load_cbn(path).edges) == sorted(cbn.edges)
+        True
     """
     suffix = _suffix(path)
     path = Path(path)
@@ -97,6 +108,15 @@ def load_cbn(path: str | os.PathLike, schema: VariableSchema = DEFAULT_SCHEMA) -
 
     Returns:
         :class:`~torchrl_causal.causal.inference.CBN`.
+
+    Example:
+        >>> import tempfile, os
+        >>> from torchrl_causal.causal import expert_dags
+        >>> from torchrl_causal.causal.inference import random_cbn
+        >>> cbn = random_cbn(expert_dags()["ascend"], seed=0)
+        >>> path = save_cbn(cbn, os.path.join(tempfile.mkdtemp(), "ascend.xmlbif"))
+        >>> len(load_cbn(path).edges) == len(cbn.edges)
+        True
     """
     suffix = _suffix(path)
     if suffix == ".json":

@@ -126,7 +126,14 @@ class DroneNavGymEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Registers :data:`GYM_ID` with gymnasium (idempotent)."""
+    """Registers :data:`GYM_ID` with gymnasium (idempotent).
+
+    Example:
+        >>> import gymnasium as gym
+        >>> register_envs(); register_envs()  # safe to call twice
+        >>> GYM_ID in gym.registry
+        True
+    """
     if GYM_ID not in gym.registry:
         gym.register(
             id=GYM_ID,

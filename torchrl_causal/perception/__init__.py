@@ -1,0 +1,23 @@
+"""Goal perception: the detector interface and the one goal measurement (thesis sec. 4.2).
+
+* :class:`GoalDetector` -- interface: batched RGB (+ depth) -> boxes and confidences.
+* :class:`SimGoalDetector` -- the simulator's ground-truth box (segmentation rendering).
+* :class:`GoalMeter` -- detections -> :class:`GoalMeasurement` (in sight, distance,
+  angle); used by :class:`~torchrl_causal.envs.drone.DroneNavEnv`'s reward and by
+  :class:`~torchrl_causal.transforms.goal.GoalFeatures`.
+
+Example:
+    >>> from torchrl_causal.perception import GoalMeter, SimGoalDetector
+    >>> GoalMeter(SimGoalDetector(), hfov_deg=60.0).confidence_threshold
+    0.7
+"""
+
+from torchrl_causal.perception.goal import (
+    GoalDetector,
+    GoalMeasurement,
+    GoalMeter,
+    SimGoalDetector,
+    box_angle_deg,
+)
+
+__all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg"]

@@ -58,6 +58,28 @@ class GoalDetector(abc.ABC):
     ``uint8 [B, H, W, 3]``, ``depth`` ``float32 [B, H, W]`` (metres) or None.
     Simulation-only ground truth (``gt_box [B, 4]``, ``gt_pixels [B]``) is
     passed as keyword arguments; real detectors ignore it.
+
+    Example:
+        >>> import torch
+        >>> class RedDetector(GoalDetector):
+        ...     # boxes the red pixels of each image; confidence 1 if any
+        ...     def detect(self, pixels, depth=None, **gt):
+        ...         red = (pixels[..., 0] > 200) & (pixels[..., 1] < 50)
+        ...         boxes, scores = [], []
+        ...         for m in red:
+        ...             ys, xs = torch.nonzero(m, as_tuple=True)
+        ...             if len(xs):
+        ...                 boxes.append([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1])
+        ...             else:
+        ...                 boxes.append([0, 0, 0, 0])
+        ...             scores.append(float(len(xs) > 0))
+        ...         return (torch.tensor(boxes, dtype=torch.float32)[:, None],
+        ...                 torch.tensor(scores)[:, None])
+        >>> img = torch.zeros(1, 32, 32, 3, dtype=torch.uint8)
+        >>> img[0, 8:16, 20:28, 0] = 255
+        >>> boxes, scores = RedDetector()(img)
+        >>> boxes[0, 0].tolist(), scores.tolist()
+        ([20.0, 8.0, 28.0, 16.0], [[1.0]])
     """
 
     @abc.abstractmethod
@@ -107,7 +129,16 @@ class SimGoalDetector(GoalDetector):
 class GoalMeasurement:
     """Batched goal measurement: ``in_sight`` bool ``[B]``, ``distance`` (m, nan when
     not in sight) ``[B]``, ``angle`` (deg, 0 when not in sight) ``[B]``,
-    ``confidence`` ``[B]`` and the chosen ``box`` ``[B, 4]``."""
+    ``confidence`` ``[B]`` and the chosen ``box`` ``[B, 4]``.
+
+    Example:
+        >>> import torch
+        >>> meter = GoalMeter(SimGoalDetector(min_pixels=4), hfov_deg=90.0)
+        >>> m = meter(torch.zeros(1, 84, 84, 3, dtype=torch.uint8), torch.full((1, 84, 84), 2.0),
+        ...           gt_box=torch.tensor([[0.0, 0.0, 0.0, 0.0]]), gt_pixels=torch.tensor([0.0]))
+        >>> bool(m.in_sight[0]), bool(m.distance[0].isnan()), float(m.angle[0])
+        (False, True, 0.0)
+    """
 
     in_sight: torch.Tensor
     distance: torch.Tensor
@@ -117,7 +148,15 @@ class GoalMeasurement:
 
 
 def box_angle_deg(box: torch.Tensor, width: int, hfov_deg: float) -> torch.Tensor:
-    """Bearing (deg, positive = left of centre) of box centres ``[..., 4]``."""
+    """Bearing (deg, positive = left of centre) of box centres ``[..., 4]``.
+
+    Pinhole model: ``atan((W/2 - cx) / f)`` with ``f = (W/2) / tan(hfov/2)``.
+
+    Example:
+        >>> import torch
+        >>> box_angle_deg(torch.tensor([[0.0, 0.0, 2.0, 2.0]]), width=84, hfov_deg=90.0).round()
+        tensor([44.])
+    """
     focal = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
     cx = (box[..., 0] + box[..., 2]) / 2.0
     return torch.rad2deg(torch.atan((width / 2.0 - cx) / focal))
