@@ -92,7 +92,7 @@ RUN_LAYOUT = {
     "eval": "eval.csv",
     "relearns": "relearns.csv",
     "checkpoint": "checkpoints/last.pt",
-    "buffer": "checkpoints/buffer",
+    "buffer": "checkpoints/buffer",  # + _<n>: the replay buffer of checkpoint n
     "logs": "logs",
     "plots": "plots",
     "tables": "tables",

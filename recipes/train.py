@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -328,8 +329,18 @@ def train(cfg: DictConfig) -> dict:
         collector.set_seed(int(cfg.seed) * 7919 + 104729 * st["n_ckpt"])
         collector.reset()
 
+    def save_checkpoint() -> None:
+        # the buffer goes to a new folder; last.pt (written atomically after it)
+        # names it, and older folders are removed only then: a kill at any point
+        # leaves a consistent last.pt + buffer pair.
+        buffer_dir = paths["buffer"].with_name(f"buffer_{st['n_ckpt']}")
+        rb.dumps(buffer_dir)
+        ru.atomic_save({**state_dict(), "buffer_dir": buffer_dir.name}, paths["checkpoint"])
+        for old in paths["buffer"].parent.glob("buffer_*"):
+            if old.is_dir() and old.name != buffer_dir.name and old.name != "buffer_storage":
+                shutil.rmtree(old, ignore_errors=True)
+
     def state_dict() -> dict:
-        rb.dumps(paths["buffer"])
         return {
             "loop": dict(st),
             "tracker": tracker.state_dict(),
@@ -354,7 +365,7 @@ def train(cfg: DictConfig) -> dict:
         optim.load_state_dict(ckpt["optim"])
         updater.counter = ckpt["updater_counter"]
         explorer.load_state_dict(ckpt["explorer"])
-        rb.loads(paths["buffer"])
+        rb.loads(paths["checkpoint"].parent / ckpt["buffer_dir"])
         if hook is not None:
             hook.load_state_dict(ckpt["hook"])
         collector.load_state_dict(ckpt["collector"], strict=False)  # frames, iter, traj ids
@@ -462,7 +473,7 @@ def train(cfg: DictConfig) -> dict:
             st["n_ckpt"] += 1
             while st["next_ckpt"] <= st["frames"]:
                 st["next_ckpt"] += cfg.checkpoint.interval_frames or math.inf
-            ru.atomic_save(state_dict(), paths["checkpoint"])
+            save_checkpoint()
             if not finished:
                 restart_collector()
             if stop_after is not None and st["frames"] >= stop_after and not finished:
