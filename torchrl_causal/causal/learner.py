@@ -44,12 +44,7 @@ from torchrl_causal.causal.data import TransitionData
 from torchrl_causal.causal.expert import expert_dags
 from torchrl_causal.causal.inference import CBN, compile_tables, fit_cbn
 from torchrl_causal.causal.io import save_cbn
-from torchrl_causal.causal.structure import (
-    BACKENDS,
-    CARDINALITY,
-    SYNCHRONOUS,
-    learn_structure,
-)
+from torchrl_causal.causal.structure import _check_options, learn_structure
 from torchrl_causal.causal.tables import RewardTables
 from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, VariableSchema
 
@@ -103,18 +98,11 @@ class CausalLearner:
     ):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if synchronous not in SYNCHRONOUS:
-            raise ValueError(f"synchronous must be one of {SYNCHRONOUS}, got {synchronous!r}")
-        if cardinality not in CARDINALITY:
-            raise ValueError(f"cardinality must be one of {CARDINALITY}, got {cardinality!r}")
+        _check_options(backend, synchronous, cardinality, max_indegree)
         if not isinstance(min_rows, int) or min_rows < 1:
             raise ValueError(f"min_rows must be an int >= 1, got {min_rows!r}")
         if not (isinstance(prior, (int, float)) and prior > 0):
             raise ValueError(f"prior must be a positive pseudo count, got {prior!r}")
-        if max_indegree is not None and (not isinstance(max_indegree, int) or max_indegree < 0):
-            raise ValueError(f"max_indegree must be None or an int >= 0, got {max_indegree!r}")
         if not isinstance(n_actions, int) or n_actions < 1:
             raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
         if mode == "defined" and n_actions != len(ACTION_NAMES):
