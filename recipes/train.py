@@ -291,6 +291,8 @@ def train(cfg: DictConfig) -> dict:
         total_frames=-1,
         init_random_frames=init_random or None,
         device=device,
+        # the policy is feed-forward: the collector must not add env transforms
+        auto_register_policy_transforms=False,
     )
     store_keys = list(STORE_KEYS) + (list(CAUSAL_STORE_KEYS) if variant.features else [])
     gate_keys = (

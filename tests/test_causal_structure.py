@@ -1,7 +1,6 @@
 """Structure learning: the fast backend reproduces pgmpy's HillClimbSearch + BIC."""
 
 import itertools
-import time
 
 import numpy as np
 import pandas as pd
@@ -95,21 +94,17 @@ def test_warm_start_equals_pgmpy_and_drops_forbidden_edges():
     assert set(again.edges) == set(fast.edges) and again.n_moves == 0
 
 
-def test_both_backends_recover_a_known_network_and_fast_is_20x_faster():
+def test_both_backends_recover_a_known_network():
+    # Speed (the >= 20x target) is measured by benchmarks/causal_learning.py, not here.
     truth = noisy_max_cbn(TRUE_EDGES)
     for seed in range(3):
         data = truth.sample(20000, seed=seed)
         assert set(learn_structure(data, backend="fast").edges) == set(TRUE_EDGES)
     data = truth.sample(4000, seed=0)
-    t0 = time.perf_counter()
     fast = learn_structure(data, backend="fast")
-    t_fast = time.perf_counter() - t0
-    t0 = time.perf_counter()
     ref = learn_structure(data, backend="pgmpy")
-    t_ref = time.perf_counter() - t0
     assert set(ref.edges) == set(fast.edges) == set(TRUE_EDGES)
     assert fast.score == pytest.approx(ref.score, abs=1e-6)
-    assert t_ref / t_fast >= 20, (t_ref, t_fast)
 
 
 def test_bic_local_scores_equal_pgmpy():
