@@ -280,6 +280,23 @@ def test_gymnasium_registration_and_checker():
     env.close()
 
 
+def test_gymnasium_make_without_prior_import():
+    """A fresh interpreter makes the env from the id alone ("module:id" form)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gymnasium as gym\n"
+        "env = gym.make('torchrl_causal.envs:torchrl_causal/DroneNav-v0', max_steps=5)\n"
+        "obs, _ = env.reset(seed=0)\n"
+        "print(obs['pixels'].shape)\n"
+        "env.close()\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "(84, 84, 3)" in out.stdout
+
+
 # ---------------------------------------------------------------- bad options
 @pytest.mark.parametrize(
     "option,value",

@@ -39,6 +39,14 @@ _LAZY = {
 
 __all__ = sorted(_LAZY)
 
+# Importing this package registers ``torchrl_causal/DroneNav-v0`` with gymnasium
+# (cheap: the MuJoCo env is only imported when gymnasium makes one), so
+# ``gym.make("torchrl_causal.envs:torchrl_causal/DroneNav-v0")`` works without
+# any prior import.
+from .gym_registration import register_envs as _register_envs  # noqa: E402
+
+_register_envs()
+
 
 def __getattr__(name):
     mod = _LAZY.get(name)
