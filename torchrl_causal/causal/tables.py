@@ -66,9 +66,9 @@ class RewardTables:
         self.known = known
         self.schema = schema
         self._strides = torch.tensor(schema.strides(), dtype=torch.int64, device=p_pos.device)
-        # state-major copy for the hot path: one index_select gives P(pos) and
-        # P(neg) of every action for a batch of states, [n_states, 2, n_actions]
-        self._by_state = torch.stack([p_pos.T, 1.0 - p_pos.T], dim=-2).contiguous()
+        # state-major copies for the hot path: one gather gives [..., n_actions] directly
+        self._pos_by_state = p_pos.T.contiguous()
+        self._neg_by_state = (1.0 - p_pos).T.contiguous()
 
     @property
     def n_actions(self) -> int:
@@ -97,9 +97,8 @@ class RewardTables:
             idx = codes.matmul(self._strides)  # one kernel for the mixed-radix index
         else:
             idx = (codes * self._strides).sum(-1)
-        both = self._by_state.index_select(0, idx.reshape(-1))
-        p_pos, p_neg = both.reshape(*idx.shape, 2, self.n_actions).unbind(-2)
-        return p_pos, p_neg, self.known.expand(*idx.shape, self.n_actions)
+        known = self.known.expand(*idx.shape, self.n_actions)
+        return self._pos_by_state[idx], self._neg_by_state[idx], known
 
     def state_dict(self) -> dict:
         return {"p_pos": self.p_pos.cpu(), "known": self.known.cpu()}
