@@ -198,7 +198,7 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
 
         _require(importlib.util.find_spec(package) is not None, "logger.backend", logger,
                  f"an installed logger, but the {package!r} package is not installed "
-                 "(use logger.backend=csv)")
+                 f"(pip install -e '.[{package}]', or use logger.backend=csv)")
     stop = _get(cfg, "checkpoint.stop_after_frames")
     _require(stop is None or (isinstance(stop, int) and stop > 0),
              "checkpoint.stop_after_frames", stop, "null or an integer > 0")
