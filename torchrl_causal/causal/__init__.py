@@ -10,7 +10,7 @@ is ``>= 0``). See the user guide page "Causal models" for the full story.
 * :mod:`~torchrl_causal.causal.inference` -- CPTs with a Dirichlet prior, compiled P(reward | state_t).
 * :mod:`~torchrl_causal.causal.tables` -- :class:`RewardTables`, what the gate reads.
 * :mod:`~torchrl_causal.causal.compare` -- Table 5.1, SHD, Markov-blanket precision/recall.
-* :mod:`~torchrl_causal.causal.io` -- XMLBIF / BIF / JSON save and load.
+* :mod:`~torchrl_causal.causal.io` -- XMLBIF / JSON save and load.
 * :mod:`~torchrl_causal.causal.draw` -- PNG drawings (t | t+1 | reward).
 * :mod:`~torchrl_causal.causal.learner` -- :class:`CausalLearner` (thesis Alg. 2).
 
