@@ -23,10 +23,14 @@ measure) and the angle takes ``good`` with a continuous 0 deg, so an unseen goal
 never looks like a goal "far to the left/right".
 
 Sanitising (inputs from any source never produce NaN/inf or an out-of-range
-code): a non-finite or negative section depth counts as ``max_depth`` (nothing
-seen) / 0; the goal counts as in sight only if its distance and angle are
-finite; distance is clipped to ``[0, max_depth]``, angle to ``[-90, 90]``; a NaN
-altitude counts as 0 m (the conservative "close to the ground").
+code): a NaN section depth counts as ``max_depth`` (nothing seen), depths are
+clipped to ``[0, max_depth]`` (``+inf`` -> ``max_depth``, ``-inf`` -> 0); a NaN
+goal distance counts as ``max_depth`` and a NaN angle as 0 deg; distance is
+clipped to ``[0, max_depth]``, angle to ``[-90, 90]``; a NaN altitude counts as
+0 m (the conservative "close to the ground"). ``goal_in_sight`` is taken as
+given (a non-bool flag counts as in sight when ``> 0.5``); dropping goals
+without a valid measurement is the
+:class:`~torchrl_causal.perception.goal.GoalMeter`'s job.
 """
 
 from __future__ import annotations
