@@ -158,3 +158,11 @@ def test_bad_options_raise(kwargs, match):
         learn_structure(np.zeros((10, 19), np.int64), **kwargs)
     with pytest.raises(ValueError, match="shape"):
         learn_structure(np.zeros((10, 18), np.int64))
+
+
+@pytest.mark.parametrize("backend", ["fast", "pgmpy"])
+def test_cyclic_start_dag_raises_on_both_backends(backend):
+    cycle = [("depth_center_t1", "goal_in_sight_t1"), ("goal_in_sight_t1", "depth_center_t1")]
+    with pytest.raises(ValueError, match="start_dag is not acyclic"):
+        learn_structure(np.zeros((10, 19), np.int64), backend=backend, start_dag=cycle,
+                        synchronous="delete_after")

@@ -466,17 +466,17 @@ def learn_structure(
             raise ValueError(f"start_dag edge {(u, v)!r} names a node not in {nodes}")
         if allowed[index[u], index[v]]:
             start_ids.append((index[u], index[v]))
+    start = [[] for _ in nodes]
+    for u, v in start_ids:
+        start[v].append(u)
+    if not _is_acyclic_parents(start):
+        raise ValueError("start_dag is not acyclic")
     node_cards = schema.node_cardinalities()
     cards_schema = [node_cards[n] for n in nodes]
     t0 = time.perf_counter()
     if backend == "fast":
         pen = cards_schema if cardinality == "schema" else _observed_cards(data)
         score = BICScore(data, cards_schema, pen, [np.flatnonzero(allowed[:, j]) for j in range(len(nodes))])
-        start = [[] for _ in nodes]
-        for u, v in start_ids:
-            start[v].append(u)
-        if not _is_acyclic_parents(start):
-            raise ValueError("start_dag is not acyclic")
         parents, moves = _hill_climb(
             score,
             allowed,
@@ -531,9 +531,7 @@ def _pgmpy_search(data, schema, nodes, start_edges, allowed, max_indegree, cardi
     expert = ExpertKnowledge(temporal_order=time_tiers(schema), forbidden_edges=same_tier)
     start = DAG()
     start.add_nodes_from(nodes)
-    start.add_edges_from(start_edges)
-    if not _is_acyclic(np.array([[start.has_edge(u, v) for v in nodes] for u in nodes])):
-        raise ValueError("start_dag is not acyclic")
+    start.add_edges_from(start_edges)  # checked acyclic by learn_structure
     hc = HillClimbSearch(
         scoring_method=scorer,
         start_dag=start,
