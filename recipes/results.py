@@ -16,7 +16,6 @@ without re-training:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -202,9 +201,3 @@ def summary_markdown(rows: Sequence[Mapping], columns: Sequence[str], title: str
             cells.append(f"{v:.3f}" if isinstance(v, float) else str(v))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
-
-
-def write_json(obj, path: str | Path) -> Path:
-    path = Path(path)
-    path.write_text(json.dumps(obj, indent=2, default=str))
-    return path
