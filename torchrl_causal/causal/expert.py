@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, REWARD_NODE, VariableSchema
+from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, REWARD_NODE, T1_SUFFIX, T_SUFFIX, VariableSchema
 
 __all__ = ["ExpertEdge", "expert_edges", "expert_dags", "TABLE_5_1_TOTALS"]
 
@@ -77,11 +77,11 @@ R = REWARD_NODE
 
 
 def _t(v: str) -> str:
-    return v + "_t"
+    return v + T_SUFFIX
 
 
 def _t1(v: str) -> str:
-    return v + "_t1"
+    return v + T1_SUFFIX
 
 
 def _core() -> list[tuple[str, str, str]]:
