@@ -123,3 +123,10 @@ def test_inside_qvalue_actor_and_dqn_loss(spec):
         assert net.conv[0].weight.grad.abs().sum() > 0
         opt.step()
     assert losses[-1] < losses[0]
+
+
+def test_wrong_image_size_message_follows_pixels_format():
+    with pytest.raises(ValueError, match=r"\[\.\.\., 84, 84, 3\] \(hwc\)"):
+        ThesisQNet(8)(torch.zeros(1, 64, 64, 3, dtype=torch.uint8))
+    with pytest.raises(ValueError, match=r"\[\.\.\., 3, 84, 84\] \(chw\)"):
+        ThesisQNet(8, pixels_format="chw")(torch.zeros(1, 3, 64, 64))

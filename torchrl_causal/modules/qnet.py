@@ -91,7 +91,7 @@ class ThesisQNet(nn.Module):
         if len(image_size) != 2:
             raise ValueError(f"image_size must be (height, width), got {image_size!r}")
         h, w = (int(s) for s in image_size)
-        for name, k, s in (("conv1", 8, 4), ("conv2", 4, 2), ("conv3", 3, 1)):
+        for k, s in ((8, 4), (4, 2), (3, 1)):
             h, w = _conv_out(h, k, s), _conv_out(w, k, s)
             if h < 1 or w < 1:
                 raise ValueError(
@@ -143,9 +143,11 @@ class ThesisQNet(nn.Module):
         if self.pixels_format == "hwc":
             x = x.movedim(-1, -3)
         if x.shape[-3] != 3 or tuple(x.shape[-2:]) != self.image_size:
+            h, w = self.image_size
+            expected = f"{h}, {w}, 3" if self.pixels_format == "hwc" else f"3, {h}, {w}"
             raise ValueError(
-                f"expected pixels of shape [..., {self.image_size[0]}, {self.image_size[1]}, 3] "
-                f"({self.pixels_format}), got {tuple(pixels.shape)}"
+                f"expected pixels of shape [..., {expected}] ({self.pixels_format}), "
+                f"got {tuple(pixels.shape)}"
             )
         batch = x.shape[:-3]
         z = self.conv(x.reshape(-1, *x.shape[-3:]))
