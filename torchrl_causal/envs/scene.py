@@ -108,6 +108,14 @@ def _quat_yaw(deg: float) -> list[float]:
     return [math.cos(a), 0.0, 0.0, math.sin(a)]
 
 
+def _add_textured_material(spec: mujoco.MjSpec, name: str, texture: str, **kw) -> None:
+    """Adds material ``name`` whose RGB texture is ``texture``."""
+    mat = spec.add_material(name=name, **kw)
+    tx = list(mat.textures)
+    tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = texture
+    mat.textures = tx
+
+
 def _add_obstacle(spec: mujoco.MjSpec, o: Obstacle, k: int):
     kw = {}
     if o.pattern == "checker":
@@ -122,10 +130,9 @@ def _add_obstacle(spec: mujoco.MjSpec, o: Obstacle, k: int):
             rgb1=rgb1,
             rgb2=rgb2,
         )
-        mat = spec.add_material(name=f"obst_mat{k}", texrepeat=[4, 4], texuniform=True)
-        tx = list(mat.textures)
-        tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"obst_tex{k}"
-        mat.textures = tx
+        _add_textured_material(
+            spec, f"obst_mat{k}", f"obst_tex{k}", texrepeat=[4, 4], texuniform=True
+        )
         kw["material"] = f"obst_mat{k}"
     if o.shape == "box":
         spec.worldbody.add_geom(
@@ -208,10 +215,7 @@ def build_model(
         rgb1=list(layout.floor_rgb[0]),
         rgb2=list(layout.floor_rgb[1]),
     )
-    mat = spec.add_material(name="floor_mat", texrepeat=[1, 1], texuniform=True)
-    tx = list(mat.textures)
-    tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "floor_tex"
-    mat.textures = tx
+    _add_textured_material(spec, "floor_mat", "floor_tex", texrepeat=[1, 1], texuniform=True)
     cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
     hx, hy = (xmax - xmin) / 2, (ymax - ymin) / 2
     wb.add_geom(
@@ -246,10 +250,7 @@ def build_model(
         name="helipad", type=mujoco.mjtTexture.mjTEXTURE_2D, width=64, height=64, nchannel=3
     )
     tex.data = helipad_image(64, *layout.helipad_rgb).tobytes()
-    mat = spec.add_material(name="helipad_mat")
-    tx = list(mat.textures)
-    tx[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "helipad"
-    mat.textures = tx
+    _add_textured_material(spec, "helipad_mat", "helipad")
     gw, gh = layout.goal_size
     gt = layout.goal_thickness
     gquat = _quat_yaw(layout.goal_yaw_deg)
@@ -266,12 +267,11 @@ def build_model(
             size=[0.025, bottom / 2, 0.0], pos=[back[0], back[1], bottom / 2],
             rgba=[0.3, 0.3, 0.3, 1.0],
         )
-    light = wb.add_light(
+    wb.add_light(
         name="sun", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, dir=list(layout.light_dir),
         pos=[cx, cy, H], castshadow=False, diffuse=[layout.light_diffuse] * 3,
         specular=[0.05] * 3,
     )
-    del light
 
     # the drone
     dx, dy, dz = DRONE_HALF_EXTENTS
