@@ -115,14 +115,17 @@ def _final_eval(run_dir: Path) -> dict:
     return {f"eval_success_{r.layout}": float(r.success_rate) for r in last.itertuples()}
 
 
+def _finished_runs(folder: Path) -> list[dict]:
+    return [r for r in results.load_runs(folder) if (r["dir"] / "summary.json").exists()]
+
+
 def aggregate(root: Path) -> dict:
     """Draws Fig. 5.3 / 5.4-style figures and the summary tables from all runs under ``root``."""
     fig_dir, tab_dir = root / "figures", root / "tables"
     fig_dir.mkdir(parents=True, exist_ok=True)
     tab_dir.mkdir(parents=True, exist_ok=True)
     out: dict = {"figures": [], "tables": []}
-    var_runs = [r for r in results.load_runs(root / "variants") if (r["dir"] / "summary.json").exists()]
-    sweep_runs = [r for r in results.load_runs(root / "k_sweep") if (r["dir"] / "summary.json").exists()]
+    var_runs, sweep_runs = _finished_runs(root / "variants"), _finished_runs(root / "k_sweep")
 
     groups: dict[str, list] = {}
     success: dict[str, list] = {}
@@ -180,11 +183,7 @@ def aggregate(root: Path) -> dict:
             row[c] = f"{m:.2f} +- {s:.2f}" if len(rs) > 1 else f"{m:.2f}"
         rows.append(row)
     if rows:
-        cols = ["run", "seeds"] + [c for c in rows[0] if c not in ("run", "seeds")]
-        for r in rows:
-            for c in r:
-                if c not in cols:
-                    cols.append(c)
+        cols = list(dict.fromkeys(c for r in rows for c in r))  # every row starts run, seeds
         md = results.summary_markdown(
             rows, cols, "Per-run summary (mean +- std over seeds; reward/success of the "
             "last 50 training episodes; eval_success_<layout>: greedy evaluation at the end)")
