@@ -467,7 +467,7 @@ class RandomLayoutGenerator:
                     pattern="checker" if u() < 0.4 else "plain",
                 )
             )
-        # keep obstacles off the goal point neighbourhood except the blocking one
+        # colours and lighting (solvability is checked by the caller, see layout())
         floor_a = rng.uniform(0.25, 0.6, size=3)
         floor_b = np.clip(floor_a * u(0.75, 0.95), 0, 1)
         wall = rng.uniform(0.45, 0.9, size=3)
