@@ -346,33 +346,31 @@ class CBNGate(TensorDictModuleBase):
         false = torch.zeros(shape, dtype=torch.bool, device=device)
         explored = u_eps < eps
         consulted = vetoed = replaced = false
+        if self.variant == "v2" and known_all is not None:
+            # Alg. 4 decides to consult (on the greedy action) before epsilon-greedy
+            ok_greedy = known_all.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)
+            consulted = (u_cbn < self.prob_causal_model) & ok_greedy
+            explored = explored & ~consulted
+        proposal = torch.where(explored, r_any, greedy)
+        action = proposal
         pp = ok = None
-        if self.variant == "v2":
-            if known_all is not None:
-                ok_greedy = known_all.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)
-                consulted = (u_cbn < self.prob_causal_model) & ok_greedy
-                explored = explored & ~consulted
-            proposal = torch.where(explored, r_any, greedy)
-            action = proposal
-            if known_all is not None:
-                pp = p_pos_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
-                ok = known_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+        if known_all is not None:
+            pp = p_pos_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+            ok = known_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+            if self.variant == "v2":
                 # P(a) < thr and N(a) = 1 - P(a) > thr
                 vetoed = consulted & (pp < self.threshold) & ((1.0 - pp) > self.threshold)
-                action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
-        else:
-            proposal = torch.where(explored, r_any, greedy)
-            action = proposal
-            if known_all is not None:
-                pp = p_pos_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
-                ok = known_all.gather(-1, proposal.unsqueeze(-1)).squeeze(-1)
+            else:
+                # Alg. 3 consults only about a non-random action
                 consulted = ~explored & (u_cbn < self.prob_causal_model) & ok
                 if self.variant == "pn":
                     vetoed = consulted & ((1.0 - pp) > self.threshold)
-                    action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
                     replaced = consulted & ~vetoed & (pp < self.threshold)
                 else:
                     replaced = consulted & (pp < self.threshold)
+            if self.variant != "p":
+                action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
+            if self.variant != "v2":
                 best = p_pos_all.masked_fill(~known_all, -1.0).argmax(-1)
                 action = torch.where(replaced, best, action)
 
