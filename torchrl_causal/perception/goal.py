@@ -147,6 +147,11 @@ class GoalMeasurement:
     box: torch.Tensor
 
 
+def _focal_px(width: int, hfov_deg: float) -> float:
+    """Pinhole focal length in pixels: ``(W/2) / tan(hfov/2)``."""
+    return (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+
+
 def box_angle_deg(box: torch.Tensor, width: int, hfov_deg: float) -> torch.Tensor:
     """Bearing (deg, positive = left of centre) of box centres ``[..., 4]``.
 
@@ -157,7 +162,7 @@ def box_angle_deg(box: torch.Tensor, width: int, hfov_deg: float) -> torch.Tenso
         >>> box_angle_deg(torch.tensor([[0.0, 0.0, 2.0, 2.0]]), width=84, hfov_deg=90.0).round()
         tensor([44.])
     """
-    focal = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    focal = _focal_px(width, hfov_deg)
     cx = (box[..., 0] + box[..., 2]) / 2.0
     return torch.rad2deg(torch.atan((width / 2.0 - cx) / focal))
 
@@ -230,7 +235,7 @@ class GoalMeter:
 
     def ray_scale(self, box: torch.Tensor, height: int, width: int) -> torch.Tensor:
         """Range / z-depth ratio of the rays through box centres ``[..., 4]`` (square pixels)."""
-        focal = (width / 2.0) / math.tan(math.radians(self.hfov_deg) / 2.0)
+        focal = _focal_px(width, self.hfov_deg)
         u = ((box[..., 0] + box[..., 2]) / 2.0 - width / 2.0) / focal
         v = ((box[..., 1] + box[..., 3]) / 2.0 - height / 2.0) / focal
         return torch.sqrt(1.0 + u * u + v * v)
