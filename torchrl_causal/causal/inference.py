@@ -255,7 +255,7 @@ def random_cbn(
     if concentration <= 0:
         raise ValueError(f"concentration must be > 0, got {concentration!r}")
     rng = np.random.default_rng(seed)
-    cbn = fit_cbn(edges, np.zeros((0, len(schema.node_names())), np.int64), schema)
+    cbn = CBN.uniform(edges, schema)
     for v, cpt in cbn.cpts.items():
         if cbn.parents[v]:
             cbn.cpts[v] = rng.dirichlet([concentration] * cpt.shape[0], size=cpt.shape[1]).T.copy()
