@@ -259,7 +259,8 @@ class LearnedStructure:
         edges: final edges ``(source, target)`` (after deleting synchronous links).
         score: BIC of the DAG the search ended in (before any deletion).
         deleted_edges: same-slice edges removed after the search (``delete_after``).
-        n_moves: hill-climbing moves taken.
+        n_moves: hill-climbing moves taken (``-1`` from the pgmpy backend, which
+            does not report them).
         backend: the backend that produced it.
         seconds: wall time of the search.
 
