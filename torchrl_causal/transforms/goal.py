@@ -94,11 +94,11 @@ class GoalFeatures(Transform):
             gt["gt_pixels"] = next_tensordict.get(self.gt_keys[1]).reshape(-1)
         m = self.meter(pixels.reshape(-1, *pixels.shape[-3:]), depth.reshape(-1, H, W), **gt)
         in_sight = m.in_sight
+        # not in sight: the meter gives distance NaN (the features want 0) and angle 0
         distance = torch.where(in_sight, m.distance, torch.zeros_like(m.distance))
-        angle = torch.where(in_sight, m.angle, torch.zeros_like(m.angle))
         next_tensordict.set(self.out_keys[0], in_sight.reshape(*batch, 1))
         next_tensordict.set(self.out_keys[1], distance.to(torch.float32).reshape(*batch, 1))
-        next_tensordict.set(self.out_keys[2], angle.to(torch.float32).reshape(*batch, 1))
+        next_tensordict.set(self.out_keys[2], m.angle.to(torch.float32).reshape(*batch, 1))
         return next_tensordict
 
     forward = _call
