@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import random
 import shutil
 import sys
 import time
@@ -267,8 +268,6 @@ def train(cfg: DictConfig) -> dict:
         torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    import random
-
     random.seed(cfg.seed)
 
     env = build_env(cfg, variant, cfg.env.layout, device)
@@ -313,11 +312,13 @@ def train(cfg: DictConfig) -> dict:
     rel_csv = ru.EpisodeCSV(paths["relearns"], ["relearn", "frames", "episode"])
     eval_envs = {lay: None for lay in cfg.env.eval_layouts}
 
+    eval_every = cfg.eval.interval_frames or math.inf  # 0 = only at the end
+    ckpt_every = cfg.checkpoint.interval_frames or math.inf
+
     # ---- state of the loop (all of it is checkpointed)
     st = {
         "frames": 0, "episodes": 0, "updates": 0, "update_budget": 0.0,
-        "next_eval": cfg.eval.interval_frames or math.inf,
-        "next_ckpt": cfg.checkpoint.interval_frames or math.inf,
+        "next_eval": eval_every, "next_ckpt": ckpt_every,
         "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
         "time_extend": 0.0, "time_train": 0.0, "time_collect": 0.0,
     }
@@ -469,12 +470,12 @@ def train(cfg: DictConfig) -> dict:
         if st["frames"] >= st["next_eval"] or finished:
             _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device)
             while st["next_eval"] <= st["frames"]:
-                st["next_eval"] += cfg.eval.interval_frames or math.inf
+                st["next_eval"] += eval_every
         at_episode_end = bool(done[-1])
         if (st["frames"] >= st["next_ckpt"] and at_episode_end) or finished:
             st["n_ckpt"] += 1
             while st["next_ckpt"] <= st["frames"]:
-                st["next_ckpt"] += cfg.checkpoint.interval_frames or math.inf
+                st["next_ckpt"] += ckpt_every
             save_checkpoint()
             if not finished:
                 restart_collector()
@@ -510,8 +511,7 @@ def train(cfg: DictConfig) -> dict:
               f"output_dir={out} checkpoint.resume=true")
         return summary
     summary.update(write_outputs(cfg, variant, paths, actor, hook))
-    ru_json = paths["summary"]
-    ru_json.write_text(json.dumps(summary, indent=2, default=str))
+    paths["summary"].write_text(json.dumps(summary, indent=2, default=str))
     return summary
 
 
