@@ -206,9 +206,7 @@ class CausalLearningHook(Transform):
             if self.relearning:
                 self._pending.append(batch)
             else:
-                t0 = time.perf_counter()
-                self.learner.add(*batch)
-                self.add_seconds += time.perf_counter() - t0
+                self._add(batch)
             self.frames += n
         if self.frames >= self._next_relearn:
             self._next_relearn = (self.frames // self.k + 1) * self.k
@@ -272,13 +270,15 @@ class CausalLearningHook(Transform):
             )
         self.__dict__["_future"] = self._executor.submit(self._relearn_now)
 
+    def _add(self, batch) -> None:
+        t0 = time.perf_counter()
+        self.learner.add(*batch)
+        self.add_seconds += time.perf_counter() - t0
+
     def _flush_pending(self) -> None:
         pending, self.__dict__["_pending"] = self._pending, []
         if pending:
-            t0 = time.perf_counter()
-            cat = [torch.cat(parts) for parts in zip(*pending)]
-            self.learner.add(*cat)
-            self.add_seconds += time.perf_counter() - t0
+            self._add([torch.cat(parts) for parts in zip(*pending)])
 
     def _collect_finished(self) -> None:
         f = self._future
