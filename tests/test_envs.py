@@ -332,3 +332,17 @@ def test_bad_option_raises_before_mujoco(monkeypatch, option, value):
         DroneNavEnv(**{option: value})
     msg = str(err.value)
     assert option in msg and repr(value) in msg
+
+
+def test_timings_count_reset_renders_and_clear_on_reset():
+    env = DroneNavEnv(seed=0)
+    try:
+        env.reset()
+        tm = env.timings()
+        assert tm["steps"] == 0 and tm["render_ms"] > 0  # the reset's render, over max(1, 0) steps
+        act(env, "forward")
+        tm = env.timings(reset=True)
+        assert tm["steps"] == 1 and tm["render_ms"] > 0 and tm["physics_ms"] > 0
+        assert env.timings() == {"render_ms": 0.0, "physics_ms": 0.0, "steps": 0}
+    finally:
+        env.close()

@@ -472,7 +472,9 @@ class DroneNavEnv(EnvBase):
         """Mean per-step cost so far: ``{"render_ms", "physics_ms", "steps"}``.
 
         ``render_ms`` covers RGB-D and (when needed) segmentation rendering,
-        ``physics_ms`` the action's execution (sweep or simulation).
+        ``physics_ms`` the action's execution (sweep or simulation). Both are
+        divided by the step count; the renders of :meth:`reset` are included in
+        ``render_ms``. ``reset=True`` clears the counters after reading them.
         """
         n = max(1, self._timing["steps"])
         out = {
