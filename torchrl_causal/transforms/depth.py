@@ -108,7 +108,7 @@ class DepthSections(Transform):
     seeded with ``seed``; give each env of a batched env its own seed
     (e.g. ``seed=base_seed + worker_index``) or call :meth:`set_seed`.
     Sampling is fully vectorised: index tables are precomputed once per image
-    size, pixel indices are drawn for blocks of 256 frames at a time (one
+    size, pixel indices are drawn in blocks of at least 256 frames (one
     ``rand``), and each call costs one ``gather`` over its batch.
 
     Args:
