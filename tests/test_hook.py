@@ -225,3 +225,21 @@ def test_bad_options(kwargs, match):
     kwargs.setdefault("learner", CausalLearner())
     with pytest.raises(ValueError, match=match):
         CausalLearningHook(**kwargs)
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_buffer_holding_the_hook_pickles(background):
+    import pickle
+
+    rb, hook, learner = make(k=100, background=background)
+    rb.extend(transitions(150))
+    rb2 = pickle.loads(pickle.dumps(rb))
+    hook2 = rb2._transform[0]
+    assert isinstance(hook2, CausalLearningHook)
+    assert hook2.frames == 150 and hook2.learner.n_relearns == 1
+    assert hook2.learner.data.counts().tolist() == learner.data.counts().tolist()
+    rb2.extend(transitions(50, seed=1))  # the copy keeps learning
+    hook2.wait()
+    assert hook2.frames == 200 and hook2.learner.n_relearns == 2
+    hook.close()
+    hook2.close()

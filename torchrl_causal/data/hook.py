@@ -337,13 +337,10 @@ class CausalLearningHook(Transform):
 
     def __getstate__(self):
         self.wait()
-        state = self.__dict__.copy()
+        state = super().__getstate__()  # Transform's: the container weakref is resolved
         state["_executor"] = None
         state["_future"] = None
         return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
 
     def extra_repr(self) -> str:
         return f"k={self.k}, background={self.background}, frames={self.frames}"
