@@ -407,7 +407,8 @@ def train(cfg: DictConfig) -> dict:
         st["frames"] += n
         explorer.step(n)
         t0 = time.perf_counter()
-        rb.extend(batch.select(*store_keys).clone())
+        # the collector yields a fresh copy each batch: the storage copies it once more
+        rb.extend(batch.select(*store_keys))
         st["time_extend"] += time.perf_counter() - t0
         if (variant.causal_mode == "defined" and hook.learner.n_relearns == 0
                 and st["frames"] >= init_random):
