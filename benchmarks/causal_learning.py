@@ -4,6 +4,7 @@ Prints one JSON object per line:
 
 * ``{"bench": "structure", "rows": N, "fast_s": ..., "pgmpy_s": ..., "speedup": ..., "same_dag": ...}``
   for 19 variables and 1k / 16k / 64k rows (seconds per action, both backends in the same run);
+* ``{"bench": "compile", "actions": 8, "states": S, "ms": ...}``: compiling 8 CBNs into reward tables;
 * ``{"bench": "lookup", "batch": B, "us_per_batch": ...}`` for batches of 1 and 256 states x 8 actions,
   beside ``{"bench": "variable_elimination", "us_per_query": ...}`` (pgmpy, one state, one action).
 

@@ -17,7 +17,7 @@ two runs of each variant):
 * ``optimisation_share_*`` / ``collection_share_*``: where the rest goes
   (gradient steps; policy + env + feature transforms).
 
-The two runs are sequential on a shared machine: compare the fps of runs
+The runs are sequential on a shared machine: compare the fps of runs
 measured in the same invocation only.
 
 Usage::
