@@ -422,3 +422,14 @@ def test_device_option():
         gate(td)
         assert td["action"].device.type == dev
         assert_rate(td["gate_vetoed"].cpu(), PCM)
+
+
+def test_state_dict_of_tables_with_a_custom_schema_loads_into_a_fresh_gate():
+    from torchrl_causal.schema import Variable, VariableSchema
+
+    schema = VariableSchema((Variable("a", ("x", "y")), Variable("b", ("x", "y", "z"))))
+    tables = RewardTables(torch.rand(4, 6), torch.ones(4, dtype=torch.bool), schema)
+    fresh = CBNGate("pn")
+    fresh.load_state_dict(CBNGate("pn", tables=tables).state_dict())
+    assert fresh.tables.schema == schema
+    assert torch.equal(fresh.tables.p_pos, tables.p_pos)

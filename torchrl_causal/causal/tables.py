@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_causal.schema import DEFAULT_SCHEMA, VariableSchema
+from torchrl_causal.schema import DEFAULT_SCHEMA, Variable, VariableSchema
 
 __all__ = ["RewardTables"]
 
@@ -101,8 +101,36 @@ class RewardTables:
         return self._pos_by_state[idx], self._neg_by_state[idx], known
 
     def state_dict(self) -> dict:
-        return {"p_pos": self.p_pos.cpu(), "known": self.known.cpu()}
+        """The tables and their schema as plain tensors, strings and lists."""
+        return {
+            "p_pos": self.p_pos.cpu(),
+            "known": self.known.cpu(),
+            "schema": [[v.name, list(v.labels), v.description] for v in self.schema],
+        }
 
     @classmethod
-    def from_state_dict(cls, sd: dict, schema: VariableSchema = DEFAULT_SCHEMA) -> "RewardTables":
+    def from_state_dict(cls, sd: dict, schema: VariableSchema | None = None) -> "RewardTables":
+        """Rebuild tables from :meth:`state_dict`.
+
+        Args:
+            sd: the state dict.
+            schema: the schema to code states with; ``None`` takes the one
+                stored in ``sd`` (:data:`~torchrl_causal.schema.DEFAULT_SCHEMA`
+                for a state dict written without one).
+
+        Example:
+            >>> import torch
+            >>> from torchrl_causal.schema import Variable, VariableSchema
+            >>> s = VariableSchema((Variable("a", ("lo", "hi")),))
+            >>> t = RewardTables(torch.rand(4, 2), torch.ones(4, dtype=torch.bool), s)
+            >>> RewardTables.from_state_dict(t.state_dict()).schema == s
+            True
+        """
+        if schema is None:
+            stored = sd.get("schema")
+            schema = (
+                DEFAULT_SCHEMA
+                if stored is None
+                else VariableSchema(tuple(Variable(n, tuple(labels), d) for n, labels, d in stored))
+            )
         return cls(sd["p_pos"], sd["known"], schema)

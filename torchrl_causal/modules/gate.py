@@ -291,15 +291,11 @@ class CBNGate(TensorDictModuleBase):
 
     def set_extra_state(self, state: dict) -> None:
         tables = state.get("tables")
-        schema = self._tables.schema if self._tables is not None else None
-        if tables is None:
-            self.set_tables(None)
-        else:
-            self.set_tables(
-                RewardTables.from_state_dict(tables)
-                if schema is None
-                else RewardTables.from_state_dict(tables, schema)
-            )
+        if tables is not None:
+            # the schema of the tables in use, else the one stored with the tables
+            schema = self._tables.schema if self._tables is not None else None
+            tables = RewardTables.from_state_dict(tables, schema)
+        self.set_tables(tables)
         if state.get("generator") is not None and self.generator is not None:
             self.generator.set_state(state["generator"])
 
