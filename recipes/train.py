@@ -544,17 +544,19 @@ def write_outputs(cfg, variant, paths, actor, hook) -> dict:
         learner = hook.learner
         learner.save(paths["cbns"] / "last")
         out["cbns"] = str(paths["cbns"])
+        expert = expert_dags(learner.schema)
+        last = learner.history_dags(-1)
         first = first_learned_dags(learner) if variant.causal_mode == "learned" else None
         if cfg.outputs.draw_cbns:
             out["cbn_drawings"] = [
-                str(p) for p in draw_cbns(learner.history_dags(-1), paths["cbns"] / "last", "last")
+                str(p) for p in draw_cbns(last, expert, paths["cbns"] / "last", "last")
             ]
             if first is not None:
                 out["cbn_drawings"] += [
-                    str(p) for p in draw_cbns(first, paths["cbns"] / "first", "first")
+                    str(p) for p in draw_cbns(first, expert, paths["cbns"] / "first", "first")
                 ]
         if first is not None:
-            rows = table_5_1(expert_dags(learner.schema), first, learner.history_dags(-1))
+            rows = table_5_1(expert, first, last)
             md, _ = write_table_5_1(rows, paths["tables"] / "table_5_1")
             out["table_5_1"] = str(md)
     return out
@@ -575,14 +577,13 @@ def first_learned_dags(learner) -> dict:
     return {name: first.get(name, []) for name in learner.action_names}
 
 
-def draw_cbns(dags: dict, folder: Path, tag: str) -> list[Path]:
-    """One PNG per action (edges shared with the defined CBN drawn thick)."""
-    from torchrl_causal.causal import draw_cbn, expert_dags
+def draw_cbns(dags: dict, expert: dict, folder: Path, tag: str) -> list[Path]:
+    """One PNG per action (edges shared with the ``expert`` (defined) CBN drawn thick)."""
+    from torchrl_causal.causal import draw_cbn
 
     import matplotlib
 
     matplotlib.use("Agg")
-    expert = expert_dags()
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, edges in dags.items():
