@@ -84,7 +84,7 @@ def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
     n_actions = env.action_spec.space.n
     net = ThesisQNet(
         n_actions,
-        n_features=9 if variant.features else 0,
+        n_features=env.observation_spec["causal_state"].shape[-1] if variant.features else 0,
         image_size=(cfg.env.image_size, cfg.env.image_size),
         device=device,
     )
