@@ -546,7 +546,7 @@ def write_outputs(cfg, variant, paths, actor, hook) -> dict:
         out["cbns"] = str(paths["cbns"])
         expert = expert_dags(learner.schema)
         last = learner.history_dags(-1)
-        first = first_learned_dags(learner) if variant.causal_mode == "learned" else None
+        first = learner.first_searched_dags() if variant.causal_mode == "learned" else None
         if cfg.outputs.draw_cbns:
             out["cbn_drawings"] = [
                 str(p) for p in draw_cbns(last, expert, paths["cbns"] / "last", "last")
@@ -560,21 +560,6 @@ def write_outputs(cfg, variant, paths, actor, hook) -> dict:
             md, _ = write_table_5_1(rows, paths["tables"] / "table_5_1")
             out["table_5_1"] = str(md)
     return out
-
-
-def first_learned_dags(learner) -> dict:
-    """Per action, the DAG of the first relearn that ran a structure search for it.
-
-    The learner searches an action's structure only once it has ``min_rows``
-    transitions; earlier relearns record an empty DAG, which is not a
-    "first learned CBN" in the sense of Table 5.1. Actions never searched get [].
-    """
-    first = {}
-    for rec in learner.history:
-        for name, info in rec["actions"].items():
-            if name not in first and "score" in info:
-                first[name] = [tuple(e) for e in info["edges"]]
-    return {name: first.get(name, []) for name in learner.action_names}
 
 
 def draw_cbns(dags: dict, expert: dict, folder: Path, tag: str) -> list[Path]:

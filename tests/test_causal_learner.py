@@ -141,3 +141,16 @@ def test_bad_options_raise():
         learner.add(s, torch.tensor([0, 8]), s, torch.zeros(2))
     with pytest.raises(ValueError, match="cardinalities"):
         learner.add(s + 3, torch.tensor([0, 1]), s, torch.zeros(2))
+
+
+def test_first_searched_dags_skip_relearns_before_an_action_had_data():
+    learner = CausalLearner(min_rows=30)
+    learner.add(*transitions(600, 0, actions=(0,)))  # only forward has data at relearn 1
+    learner.relearn()
+    learner.add(*transitions(600, 1, actions=(1,)))  # backward gets data for relearn 2
+    learner.relearn()
+    first = learner.first_searched_dags()
+    assert first["forward"] == learner.history_dags(0)["forward"] != []
+    assert learner.history_dags(0)["backward"] == []  # not searched at relearn 1 ...
+    assert first["backward"] == learner.history_dags(1)["backward"] != []  # ... but at 2
+    assert first["turn_right"] == []  # never taken

@@ -200,6 +200,32 @@ class CausalLearner:
         rec = self.history[index]
         return {name: [tuple(e) for e in info["edges"]] for name, info in rec["actions"].items()}
 
+    def first_searched_dags(self) -> dict[str, list[tuple[str, str]]]:
+        """Per action, the DAG of the first relearn that ran a structure search for it.
+
+        An action's structure is searched only once it has ``min_rows``
+        transitions (and, in ``"learned"`` mode, a reward that varied); earlier
+        relearns record an empty DAG, which is not the "first learned CBN" of
+        thesis Table 5.1. Actions never searched get ``[]``.
+
+        Example:
+            >>> import torch
+            >>> learner = CausalLearner(min_rows=5)
+            >>> g = torch.Generator().manual_seed(0)
+            >>> s = torch.randint(0, 2, (64, 9), generator=g)
+            >>> learner.add(s, torch.zeros(64, dtype=torch.long), s, torch.randn(64, generator=g))
+            >>> _ = learner.relearn()
+            >>> first = learner.first_searched_dags()
+            >>> len(first), first["backward"]
+            (8, [])
+        """
+        first: dict[str, list[tuple[str, str]]] = {}
+        for rec in self.history:
+            for name, info in rec["actions"].items():
+                if name not in first and "score" in info:
+                    first[name] = [tuple(e) for e in info["edges"]]
+        return {name: first.get(name, []) for name in self.action_names}
+
     # ---------------------------------------------------------- persistence
     def state_dict(self) -> dict:
         """Everything needed to resume: options, data, DAGs, history, tables."""
