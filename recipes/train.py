@@ -74,6 +74,14 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str):
     return env
 
 
+def random_frames(cfg: DictConfig, variant: ru.Variant) -> int:
+    """Uniformly random frames collected first: ``collector.init_random_frames``, plus,
+    for ``cbn_defined``, the ``causal.warmup_frames`` that fit the expert CPTs
+    (counted in the frame budget)."""
+    extra = cfg.causal.warmup_frames if variant.causal_mode == "defined" else 0
+    return cfg.collector.init_random_frames + extra
+
+
 def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
     """Actor, explorer (gate or epsilon-greedy), policy, causal hook (or None)."""
     from tensordict.nn import TensorDictSequential
@@ -118,8 +126,15 @@ def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
             backend=cfg.causal.backend,
             **OmegaConf.to_container(cfg.causal.options, resolve=True),
         )
+        # cbn_defined: the first relearn (fitting the expert CBNs' CPTs) comes
+        # at the end of the random warm-up, which the collector runs first
+        warmup = random_frames(cfg, variant)
         hook = CausalLearningHook(
-            learner, k=cfg.causal.k, gates=[explorer], background=cfg.causal.background
+            learner,
+            k=cfg.causal.k,
+            gates=[explorer],
+            background=cfg.causal.background,
+            first_relearn=warmup if variant.causal_mode == "defined" and warmup else None,
         )
     policy = TensorDictSequential(actor, explorer)
     return actor, explorer, policy, hook
@@ -280,9 +295,7 @@ def train(cfg: DictConfig) -> dict:
     )
     updater = HardUpdate(loss, value_network_update_interval=cfg.loss.target_update_interval)
 
-    init_random = cfg.collector.init_random_frames
-    if variant.causal_mode == "defined":
-        init_random += cfg.causal.warmup_frames  # counted in the frame budget
+    init_random = random_frames(cfg, variant)
     collector = Collector(
         env,
         policy,
@@ -410,9 +423,6 @@ def train(cfg: DictConfig) -> dict:
         # the collector yields a fresh copy each batch: the storage copies it once more
         rb.extend(batch.select(*store_keys))
         st["time_extend"] += time.perf_counter() - t0
-        if (variant.causal_mode == "defined" and hook.learner.n_relearns == 0
-                and st["frames"] >= init_random):
-            hook.relearn()  # end of the random warm-up: fit the expert CBNs' CPTs now
         if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
             st["n_relearns"] = hook.learner.n_relearns
             rel_csv.write({"relearn": st["n_relearns"], "frames": st["frames"],

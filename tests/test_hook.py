@@ -84,6 +84,16 @@ def test_relearns_every_k_frames_and_pushes_tables_to_gates():
     assert late.tables is learner.tables
 
 
+def test_first_relearn_then_every_k():
+    learner = CausalLearner()
+    hook = CausalLearningHook(learner, k=200, first_relearn=100)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10_000), batch_size=16)
+    rb.append_transform(hook)
+    for i in range(9):  # 9 writes of 50 frames: relearns at 100, then 200 and 400
+        rb.extend(transitions(50, seed=i))
+    assert [h["frames"] for h in learner.history] == [100, 200, 400]
+
+
 def test_learned_tables_make_the_gate_veto_the_crashing_action():
     gate = CBNGate("pn", prob_causal_model=1.0, eps_init=0.0, eps_end=0.0, seed=0)
     rb, hook, learner = make(k=2000, gates=[gate])
@@ -219,6 +229,8 @@ def test_checkpoint_resume_matches_uninterrupted_run(background):
         (dict(background="yes"), "background"),
         (dict(gates=[object()]), "set_tables"),
         (dict(learner=object()), "learner must provide"),
+        (dict(first_relearn=0), "first_relearn must be"),
+        (dict(first_relearn=1.5), "first_relearn must be"),
     ],
 )
 def test_bad_options(kwargs, match):

@@ -93,6 +93,9 @@ class CausalLearningHook(Transform):
             into the reward class (positive iff ``>= 0``).
         mask_key: optional boolean key marking valid transitions (a collector's
             ``("collector", "mask")`` with ``split_trajs=True``); used when present.
+        first_relearn: stored frames before the first relearn (default ``k``);
+            later relearns fall on multiples of ``k``. E.g. the end of a random
+            warm-up that fits an expert CBN's CPTs before training.
 
     Example:
         >>> from torchrl_causal.causal import CausalLearner
@@ -114,9 +117,14 @@ class CausalLearningHook(Transform):
         next_causal_state_key: NestedKey = ("next", "causal_state"),
         reward_key: NestedKey = ("next", "reward"),
         mask_key: NestedKey | None = ("collector", "mask"),
+        first_relearn: int | None = None,
     ):
         if isinstance(k, bool) or not isinstance(k, int) or k <= 0:
             raise ValueError(f"k must be a positive int, got {k!r}")
+        if first_relearn is not None and (
+            isinstance(first_relearn, bool) or not isinstance(first_relearn, int) or first_relearn <= 0
+        ):
+            raise ValueError(f"first_relearn must be None or a positive int, got {first_relearn!r}")
         if not isinstance(background, bool):
             raise ValueError(f"background must be a bool, got {background!r}")
         gates = list(gates)
@@ -145,7 +153,7 @@ class CausalLearningHook(Transform):
         self.reward_key = reward_key
         self.mask_key = mask_key
         self.frames = 0
-        self._next_relearn = k
+        self._next_relearn = k if first_relearn is None else first_relearn
         self.relearn_seconds = 0.0
         self.add_seconds = 0.0
         self.last_relearn_seconds = 0.0
