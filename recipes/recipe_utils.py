@@ -30,6 +30,10 @@ __all__ = [
     "Variant",
     "VARIANTS",
     "GATE_MODES",
+    "PRESETS",
+    "REWARDS",
+    "LOSS_FUNCTIONS",
+    "reward_scale",
     "SCENES",
     "LOGGER_BACKENDS",
     "RUN_LAYOUT",
@@ -84,6 +88,15 @@ SCENES = {
     "heldout": {"layout": "random", "split": "heldout"},  # random layouts never trained on
 }
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
+#: ``preset`` names (config group ``recipes/config/preset``).
+PRESETS = ("default", "thesis")
+#: ``env.reward`` names (:data:`torchrl_causal.envs.rewards.REWARDS`).
+REWARDS = ("progress", "thesis")
+#: ``loss.function`` -> the ``loss_function`` of :class:`torchrl.objectives.DQNLoss`.
+LOSS_FUNCTIONS = {"huber": "smooth_l1", "l2": "l2"}
+OPTIMIZERS = ("adam", "rmsprop")
+#: ``loss.reward_scale: null`` -> the scale for each reward (keeps TD targets O(1..10)).
+AUTO_REWARD_SCALE = {"progress": 1.0, "thesis": 0.01}
 
 #: Files and folders of a run folder, relative to it.
 RUN_LAYOUT = {
@@ -186,6 +199,29 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     episodes = _get(cfg, "collector.total_episodes")
     _require(episodes is None or (isinstance(episodes, int) and episodes > 0),
              "collector.total_episodes", episodes, "null or an integer > 0")
+    device = _get(cfg, "device")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        dev = None
+    _require(dev is not None and dev.type in ("cpu", "cuda"), "device", device,
+             "'cpu' or 'cuda' (or 'cuda:<index>')")
+    _require(dev.type == "cpu" or torch.cuda.is_available(), "device", device,
+             "'cpu' on this machine (torch.cuda.is_available() is False)")
+    preset = _get(cfg, "preset_name")
+    _require(preset in PRESETS, "preset", preset, f"one of {PRESETS}")
+    reward = _get(cfg, "env.reward")
+    _require(reward in REWARDS, "env.reward", reward, f"one of {REWARDS}")
+    fn = _get(cfg, "loss.function")
+    _require(fn in LOSS_FUNCTIONS, "loss.function", fn, f"one of {sorted(LOSS_FUNCTIONS)}")
+    opt = _get(cfg, "optim.name")
+    _require(opt in OPTIMIZERS, "optim.name", opt, f"one of {OPTIMIZERS}")
+    dd = _get(cfg, "loss.double_dqn")
+    _require(isinstance(dd, bool), "loss.double_dqn", dd, "true or false")
+    rs = _get(cfg, "loss.reward_scale")
+    _require(rs is None or (isinstance(rs, (int, float)) and not isinstance(rs, bool) and rs > 0),
+             "loss.reward_scale", rs, "null (auto) or a number > 0")
+    _check_can_learn(cfg)
     scene = _get(cfg, "env.layout")
     _require(scene in SCENES, "env.layout", scene, f"one of {sorted(SCENES)}")
     for scene in _get(cfg, "env.eval_layouts") or []:
@@ -209,6 +245,37 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
                  f"an existing checkpoint, but {str(ckpt)!r} does not exist "
                  "(point output_dir at the folder of the run to resume)")
     return v
+
+
+def reward_scale(cfg: Mapping) -> float:
+    """``loss.reward_scale``, or for ``null`` the scale of the reward in use (:data:`AUTO_REWARD_SCALE`)."""
+    scale = _get(cfg, "loss.reward_scale")
+    if scale is None:
+        return AUTO_REWARD_SCALE[_get(cfg, "env.reward")]
+    return float(scale)
+
+
+def _check_can_learn(cfg: Mapping) -> None:
+    """Settings that cannot learn by construction: a clear error before any work.
+
+    * ``loss.learning_starts >= collector.total_frames``: no gradient step ever;
+    * a ``loss.target_update_interval`` longer than the run's gradient steps:
+      the target network is never copied, so no value ever propagates.
+    """
+    total = _get(cfg, "collector.total_frames")
+    starts = _get(cfg, "loss.learning_starts")
+    if not (isinstance(total, int) and isinstance(starts, int)):
+        return  # reported by the type checks
+    _require(starts < total, "loss.learning_starts", starts,
+             f"fewer frames than collector.total_frames={total} (no gradient step would run)")
+    upf = _get(cfg, "loss.updates_per_frame")
+    interval = _get(cfg, "loss.target_update_interval")
+    if isinstance(upf, (int, float)) and upf > 0 and isinstance(interval, int):
+        updates = int((total - starts) * upf)
+        _require(interval <= updates, "loss.target_update_interval", interval,
+                 f"at most the run's {updates} gradient steps ((collector.total_frames - "
+                 f"loss.learning_starts) x loss.updates_per_frame): the target network would "
+                 f"never be updated")
 
 
 def gate_mode(cfg: Mapping, variant: Variant) -> str | None:

@@ -61,6 +61,7 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str):
         **ru.SCENES[scene],
         image_size=cfg.env.image_size,
         max_steps=cfg.env.max_steps,
+        reward=cfg.env.reward,
         seed=cfg.seed,
         device=device,
         **OmegaConf.to_container(cfg.env.options, resolve=True),
@@ -140,14 +141,15 @@ def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
     return actor, explorer, policy, hook
 
 
-def build_buffer(cfg: DictConfig, hook, scratch: Path):
-    """Replay memory: RAM storage, or a memmap on disk above ``buffer.memmap_above``."""
+def build_buffer(cfg: DictConfig, hook, scratch: Path, device: str = "cpu"):
+    """Replay memory: on ``device`` (RAM or GPU), or a memmap on disk above
+    ``buffer.memmap_above`` (samples are then moved to ``device``)."""
     from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
     if cfg.buffer.size > cfg.buffer.memmap_above:
         storage = LazyMemmapStorage(cfg.buffer.size, scratch_dir=cfg.buffer.scratch_dir or scratch)
     else:
-        storage = LazyTensorStorage(cfg.buffer.size)
+        storage = LazyTensorStorage(cfg.buffer.size, device=device)
     rb = TensorDictReplayBuffer(storage=storage, batch_size=cfg.buffer.batch_size)
     if hook is not None:
         rb.append_transform(hook)
@@ -223,7 +225,7 @@ def evaluate(policy, env, episodes: int, seed: int) -> dict:
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     env.set_seed(seed)
-    rewards, successes, crashes, lengths = [], [], [], []
+    rewards, successes, crashes, exits, lengths = [], [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             td = env.rollout(env_max_steps(env), policy, break_when_any_done=True)
@@ -232,11 +234,15 @@ def evaluate(policy, env, episodes: int, seed: int) -> dict:
             lengths.append(td.numel())
             successes.append(_flag(nxt, "reached"))
             crashes.append(_flag(nxt, "crashed"))
+            exits.append(_flag(nxt, "out_of_bounds"))
+    to_goal = [n for n, ok in zip(lengths, successes) if ok]
     return {
         "success_rate": float(np.mean(successes)),
         "mean_reward": float(np.mean(rewards)),
         "collisions": int(np.sum(crashes)),
+        "out_of_bounds": int(np.sum(exits)),
         "mean_length": float(np.mean(lengths)),
+        "steps_to_goal": float(np.mean(to_goal)) if to_goal else float("nan"),
     }
 
 
@@ -287,12 +293,17 @@ def train(cfg: DictConfig) -> dict:
 
     env = build_env(cfg, variant, cfg.env.layout, device)
     actor, explorer, policy, hook = build_agent(cfg, variant, env, device)
-    rb = build_buffer(cfg, hook, paths["buffer"].parent / "buffer_storage")
-    loss = DQNLoss(actor, loss_function="l2", delay_value=True, action_space=env.action_spec)
+    rb = build_buffer(cfg, hook, paths["buffer"].parent / "buffer_storage", device)
+    loss = DQNLoss(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function], delay_value=True,
+                   double_dqn=cfg.loss.double_dqn, action_space=env.action_spec)
     loss.make_value_estimator(gamma=cfg.loss.gamma)
-    optim = torch.optim.RMSprop(
-        loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps, alpha=cfg.optim.alpha
-    )
+    reward_scale = ru.reward_scale(cfg)
+    if cfg.optim.name == "adam":
+        optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
+    else:
+        optim = torch.optim.RMSprop(
+            loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps, alpha=cfg.optim.alpha
+        )
     updater = HardUpdate(loss, value_network_update_interval=cfg.loss.target_update_interval)
 
     init_random = random_frames(cfg, variant)
@@ -314,13 +325,14 @@ def train(cfg: DictConfig) -> dict:
     )
     ep_csv = ru.EpisodeCSV(
         paths["episodes"],
-        ["episode", "frames", "reward", "length", "success", "crash", "epsilon", "n_relearns"]
+        ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds", "epsilon",
+         "n_relearns"]
         + [k.replace("gate_", "gate_frac_") for k in gate_keys],
     )
     eval_csv = ru.EpisodeCSV(
         paths["eval"],
         ["frames", "episodes", "layout", "success_rate", "mean_reward", "collisions",
-         "mean_length"],
+         "out_of_bounds", "mean_length", "steps_to_goal"],
     )
     rel_csv = ru.EpisodeCSV(paths["relearns"], ["relearn", "frames", "episode"])
     eval_envs = {lay: None for lay in cfg.env.eval_layouts}
@@ -443,6 +455,7 @@ def train(cfg: DictConfig) -> dict:
                     "episode": st["episodes"], "frames": st["frames"] - (n - 1 - i),
                     "reward": tracker.reward, "length": tracker.length,
                     "success": success, "crash": bool(nxt["crashed"][i].any()),
+                    "out_of_bounds": bool(nxt["out_of_bounds"][i].any()),
                     "epsilon": float(explorer.eps), "n_relearns": st["n_relearns"],
                 }
                 for k in gate_keys:
@@ -459,7 +472,9 @@ def train(cfg: DictConfig) -> dict:
             st["update_budget"] += n * cfg.loss.updates_per_frame
             while st["update_budget"] >= 1.0:
                 st["update_budget"] -= 1.0
-                sample = rb.sample()
+                sample = rb.sample().to(device)
+                if reward_scale != 1.0:  # the loss sees scaled rewards; the env's stay as defined
+                    sample.set(("next", "reward"), sample.get(("next", "reward")) * reward_scale)
                 loss_td = loss(sample)
                 loss_td["loss"].backward()
                 torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.loss.max_grad_norm)
@@ -521,6 +536,7 @@ def train(cfg: DictConfig) -> dict:
         print(f"Stopped after {st['frames']} frames (checkpoint.stop_after_frames); resume with "
               f"output_dir={out} checkpoint.resume=true")
         return summary
+    summary["final_eval"] = final_evaluation(cfg, variant, policy, eval_envs, device)
     summary.update(write_outputs(cfg, variant, paths, actor, hook))
     paths["summary"].write_text(json.dumps(summary, indent=2, default=str))
     return summary
@@ -540,6 +556,17 @@ def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device):
         if logger is not None:
             for key, val in res.items():
                 logger.log_scalar(f"eval_{layout}/{key}", val, step=st["frames"])
+
+
+def final_evaluation(cfg, variant, policy, eval_envs, device) -> dict:
+    """``eval.final_episodes`` greedy episodes per evaluation layout (the headline figures)."""
+    out = {}
+    for i, layout in enumerate(eval_envs):
+        if eval_envs[layout] is None:
+            eval_envs[layout] = build_env(cfg, variant, layout, device)
+        out[layout] = evaluate(policy, eval_envs[layout], cfg.eval.final_episodes,
+                               seed=10_000_019 + int(cfg.seed) * 1009 + i)
+    return out
 
 
 def write_outputs(cfg, variant, paths, actor, hook) -> dict:

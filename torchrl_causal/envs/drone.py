@@ -24,9 +24,10 @@ from ..perception.goal import GoalDetector, GoalMeter, SimGoalDetector  # noqa: 
 from ..schema import ACTION_NAMES  # noqa: E402
 from .control import KinematicExecutor, PhysicsExecutor, action_deltas  # noqa: E402
 from .layouts import SPLITS, Layout, RandomLayoutGenerator, thesis_layout  # noqa: E402
+from .rewards import REWARDS, StepOutcome, make_reward  # noqa: E402
 from .scene import SceneRenderer, build_model  # noqa: E402
 
-__all__ = ["DroneNavEnv", "EXECUTION_MODES", "LAYOUTS"]
+__all__ = ["DroneNavEnv", "EXECUTION_MODES", "LAYOUTS", "REWARDS"]
 
 #: Accepted values of the ``execution`` option.
 EXECUTION_MODES: tuple[str, ...] = ("kinematic", "physics")
@@ -46,6 +47,7 @@ _OBS_KEYS = (
     "goal_angle",
     "crashed",
     "reached",
+    "out_of_bounds",
 )
 
 
@@ -74,15 +76,19 @@ class DroneNavEnv(EnvBase):
     ``goal_true_bearing`` ``[1]`` (deg, positive = left); the goal measurement
     of :attr:`goal_meter` used by the reward: ``goal_in_sight`` bool ``[1]``,
     ``goal_distance`` ``[1]`` (m, 0 when not in sight), ``goal_angle`` ``[1]``
-    (deg, positive = left, 0 when not in sight); ``crashed`` and ``reached``
-    bool ``[1]``. Action: ``Categorical(8)`` in
+    (deg, positive = left, 0 when not in sight); ``crashed``, ``reached`` and
+    ``out_of_bounds`` bool ``[1]``. Action: ``Categorical(8)`` in
     :data:`~torchrl_causal.schema.ACTION_NAMES` order.
 
-    Reward (thesis sec. 5.1): ``-1000`` on a crash, ``+1000`` on reaching the
-    goal point (these replace the shaping term), else
+    Reward (:mod:`torchrl_causal.envs.rewards`): ``reward="progress"``
+    (default): ``+10`` on reaching the goal point, ``-10`` on a crash or a
+    geofence exit, else the metres of progress towards the goal point minus
+    ``0.01``. ``reward="thesis"`` (thesis sec. 5.1, exactly): ``-1000`` on a
+    crash (or geofence exit), ``+1000`` on reaching, else
     ``100 - goal_distance - |goal_angle|`` if the goal is recognised
-    (``goal_in_sight``), else ``-9``. Termination on crash or reach,
-    truncation after ``max_steps`` steps.
+    (``goal_in_sight``), else ``-9``. Termination on crash, reach or leaving
+    the layout's flight volume (an open layout's geofence), truncation after
+    ``max_steps`` steps.
 
     Args:
         layout: ``"thesis"`` (default scene, thesis Fig. 2.3), ``"random"``
@@ -104,6 +110,9 @@ class DroneNavEnv(EnvBase):
         max_steps: truncation horizon.
         reach_radius: the drone's centre within this distance of the goal
             point counts as reached (m).
+        reward: ``"progress"`` (default), ``"thesis"`` (see
+            :data:`~torchrl_causal.envs.rewards.REWARDS`) or a callable of a
+            :class:`~torchrl_causal.envs.rewards.StepOutcome`.
         goal_min_pixels: visible goal pixels the default detector needs.
         detector: a :class:`~torchrl_causal.perception.goal.GoalDetector`
             (default ``SimGoalDetector(min_pixels=goal_min_pixels)``).
@@ -145,6 +154,7 @@ class DroneNavEnv(EnvBase):
         max_depth: float = 10.0,
         max_steps: int = 200,
         reach_radius: float = 0.2,
+        reward="progress",
         goal_min_pixels: int = 20,
         detector: GoalDetector | None = None,
         confidence_threshold: float = 0.7,
@@ -181,6 +191,7 @@ class DroneNavEnv(EnvBase):
         if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
             raise ValueError(f"max_steps must be an int >= 1, got {max_steps!r}")
         _positive("reach_radius", reach_radius)
+        self.reward_fn = make_reward(reward)
         if not isinstance(goal_min_pixels, (int, np.integer)) or goal_min_pixels < 1:
             raise ValueError(f"goal_min_pixels must be an int >= 1, got {goal_min_pixels!r}")
         if detector is not None and not isinstance(detector, GoalDetector):
@@ -282,6 +293,7 @@ class DroneNavEnv(EnvBase):
             goal_angle=Bounded(-90.0, 90.0, shape=(1,), dtype=f32, device=dev),
             crashed=flag(),
             reached=flag(),
+            out_of_bounds=flag(),
             shape=(),
             device=dev,
         )
@@ -359,7 +371,7 @@ class DroneNavEnv(EnvBase):
             u.max() < -w / 2 - 1 or u.min() > w / 2 + 1 or v.max() < -h / 2 - 1 or v.min() > h / 2 + 1
         )
 
-    def _observe(self, crashed: bool, reached: bool) -> dict:
+    def _observe(self, crashed: bool, reached: bool, out_of_bounds: bool = False) -> dict:
         m, d = self.model, self.data
         t0 = time.perf_counter()
         mujoco.mj_kinematics(m, d)
@@ -400,7 +412,9 @@ class DroneNavEnv(EnvBase):
         scalars = torch.from_numpy(
             np.array([alt, count, true_dist, bearing, g_dist, g_angle], dtype=np.float32)
         )
-        flags = torch.from_numpy(np.array([in_sight, crashed, reached], dtype=np.bool_))
+        flags = torch.from_numpy(
+            np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_)
+        )
         obs = {
             "pixels": pixels,
             "depth": depth_t,
@@ -414,6 +428,7 @@ class DroneNavEnv(EnvBase):
             "goal_angle": scalars[5:6],
             "crashed": flags[1:2],
             "reached": flags[2:3],
+            "out_of_bounds": flags[3:4],
         }
         return obs
 
@@ -437,6 +452,7 @@ class DroneNavEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = int(tensordict.get("action"))
+        d_before = self._distance_to_goal_point()
         t0 = time.perf_counter()
         out = self._executor.execute(
             self._deltas[action], self._rng, self._goal_point, self.reach_radius
@@ -444,16 +460,23 @@ class DroneNavEnv(EnvBase):
         self._timing["physics_s"] += time.perf_counter() - t0
         self._timing["steps"] += 1
         self._steps += 1
-        obs = self._observe(out.crashed, out.reached)
-        if out.crashed:
-            reward = -1000.0
-        elif out.reached:
-            reward = 1000.0
-        elif bool(obs["goal_in_sight"]):
-            reward = 100.0 - float(obs["goal_distance"]) - abs(float(obs["goal_angle"]))
-        else:
-            reward = -9.0
-        terminated = out.crashed or out.reached
+        pose = self._executor.pose()
+        out_of_bounds = not (out.crashed or out.reached) and not self.layout.inside(pose)
+        obs = self._observe(out.crashed, out.reached, out_of_bounds)
+        in_sight = bool(obs["goal_in_sight"])
+        reward = self.reward_fn(
+            StepOutcome(
+                crashed=out.crashed,
+                reached=out.reached,
+                out_of_bounds=out_of_bounds,
+                in_sight=in_sight,
+                goal_distance=float(obs["goal_distance"]) if in_sight else 0.0,
+                goal_angle=float(obs["goal_angle"]) if in_sight else 0.0,
+                distance_before=d_before,
+                distance_after=self._distance_to_goal_point(),
+            )
+        )
+        terminated = out.crashed or out.reached or out_of_bounds
         truncated = (not terminated) and self._steps >= self.max_steps
         obs["reward"] = torch.from_numpy(np.array([reward], dtype=np.float32))
         ends = torch.from_numpy(
@@ -463,6 +486,11 @@ class DroneNavEnv(EnvBase):
         obs["truncated"] = ends[1:2]
         obs["done"] = ends[2:3]
         return self._pack(obs)
+
+    def _distance_to_goal_point(self) -> float:
+        x, y, z, _ = self._executor.pose()
+        g = self._goal_point
+        return math.sqrt((x - g[0]) ** 2 + (y - g[1]) ** 2 + (z - g[2]) ** 2)
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng = np.random.default_rng(seed)

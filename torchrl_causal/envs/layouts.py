@@ -144,11 +144,18 @@ class Layout:
         light_dir: direction of the directional light.
         light_diffuse: its diffuse intensity (grey level).
         ambient: headlight ambient level.
+        enclosed: ``False`` (default): an open field; ``arena`` and ``height``
+            are the *flight volume* (a geofence: the episode ends when the
+            drone's centre leaves it) and only the floor is solid. ``True``:
+            the arena is a closed hall with four walls and a ceiling (the
+            scene of earlier versions).
 
     Example:
         >>> lay = thesis_layout()
-        >>> lay.name, len(lay.obstacles)
-        ('thesis', 1)
+        >>> lay.name, len(lay.obstacles), lay.enclosed
+        ('thesis', 1, False)
+        >>> lay.inside((0.0, 0.0, 1.0)), lay.inside((0.0, 0.0, 3.5))
+        (True, False)
     """
 
     name: str
@@ -175,12 +182,19 @@ class Layout:
     light_dir: Vec3 = (0.3, 0.2, -1.0)
     light_diffuse: float = 0.55
     ambient: float = 0.35
+    enclosed: bool = False
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def goal_normal(self) -> np.ndarray:
         """Unit vector (horizontal) the board's face points to."""
         a = math.radians(self.goal_yaw_deg)
         return np.array([math.cos(a), math.sin(a), 0.0])
+
+    def inside(self, pos) -> bool:
+        """Whether the point ``pos = (x, y, z)`` lies in the flight volume (arena x height)."""
+        xmin, ymin, xmax, ymax = self.arena
+        x, y, z = (float(v) for v in pos[:3])
+        return xmin <= x <= xmax and ymin <= y <= ymax and z <= self.height
 
     def goal_point(self) -> np.ndarray:
         """Where the drone's centre must get to (within ``reach_radius``)."""
@@ -216,6 +230,8 @@ class Layout:
             round(self.light_diffuse, 2),
             round(self.ambient, 2),
         ]
+        if self.enclosed:  # (open layouts keep the fingerprints of earlier versions)
+            parts.append("enclosed")
         text = "|".join(
             str(p.tolist()) if isinstance(p, np.ndarray) else str(p) for p in parts
         ).replace("-0.0", "0.0")
@@ -231,24 +247,32 @@ class Layout:
         )
 
 
-def thesis_layout() -> Layout:
-    """The embedded default scene (thesis Fig. 2.3).
+def thesis_layout(enclosed: bool = False) -> Layout:
+    """The embedded default scene (thesis Fig. 2.3, sec. 2.8: "an open environment").
 
-    The drone starts at ``(0, 0, 1)`` facing +x. The 1.0 x 0.8 m goal board
-    stands at ``x = 3`` facing the drone; its goal point is at ``(2.53, 0, 1)``,
-    ten forward steps of 0.25 m away. A 0.3 x 0.3 x 2 m pillar at
-    ``(1.25, -0.1)`` blocks the straight line: a left side-step (0.25 m), ten
-    forward steps and a right side-step reach the goal (12 actions), or the
-    drone may climb over it (ceiling at 2.5 m).
+    The drone starts at ``(0, 0, 1)`` facing +x, with the goal in view. The
+    1.0 x 0.8 m goal board stands at ``x = 3`` facing the drone; its goal point
+    is at ``(2.53, 0, 1)``, ten forward steps of 0.25 m away. One 0.3 x 0.3 x
+    2 m pillar at ``(1.25, -0.1)`` blocks the straight line: a left side-step
+    (0.25 m), ten forward steps and a right side-step reach the goal (12
+    actions); flying over the pillar takes longer.
+
+    The field is open: no walls and no ceiling, only the floor is solid. The
+    flight volume (a geofence) is ``x in [-2, 5]``, ``y in [-3, 3]``,
+    ``z <= 3`` m: the episode ends when the drone's centre leaves it.
+    ``enclosed=True`` gives the closed 6 x 5 x 2.5 m hall of earlier versions
+    (walls and a ceiling at the old arena bounds) for comparison.
 
     Example:
-        >>> thesis_layout().start_pos
-        (0.0, 0.0, 1.0)
+        >>> thesis_layout().start_pos, thesis_layout().arena
+        ((0.0, 0.0, 1.0), (-2.0, -3.0, 5.0, 3.0))
+        >>> thesis_layout(enclosed=True).height
+        2.5
     """
     return Layout(
-        name="thesis",
-        arena=(-1.5, -2.5, 4.5, 2.5),
-        height=2.5,
+        name="thesis_hall" if enclosed else "thesis",
+        arena=(-1.5, -2.5, 4.5, 2.5) if enclosed else (-2.0, -3.0, 5.0, 3.0),
+        height=2.5 if enclosed else 3.0,
         start_pos=(0.0, 0.0, 1.0),
         start_yaw_deg=0.0,
         goal_center=(3.0, 0.0, 1.0),
@@ -262,6 +286,7 @@ def thesis_layout() -> Layout:
                 pattern="checker",
             ),
         ),
+        enclosed=enclosed,
     )
 
 

@@ -6,7 +6,9 @@ checker textures use MuJoCo's built-in texture generator.
 
 The model contains:
 
-* the floor (a plane with a checker texture), four walls and a ceiling;
+* the floor (a plane with a checker texture); for an ``enclosed`` layout also
+  four walls and a ceiling (an open layout's flight volume is a geofence the
+  env checks, not geometry);
 * the layout's obstacles (boxes or cylinders);
 * the goal: a board with the heliport texture on its face, on a thin post;
 * the drone: a free-joint body (collision hull ``DRONE_HALF_EXTENTS``, 0.5 kg)
@@ -218,30 +220,33 @@ def build_model(
     _add_textured_material(spec, "floor_mat", "floor_tex", texrepeat=[1, 1], texuniform=True)
     cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
     hx, hy = (xmax - xmin) / 2, (ymax - ymin) / 2
+    # an open field's floor reaches past the depth range in every direction
+    fx, fy = (hx, hy) if layout.enclosed else (hx + max_depth, hy + max_depth)
     wb.add_geom(
         name="floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
-        size=[hx, hy, 0.5],
+        size=[fx, fy, 0.5],
         pos=[cx, cy, 0.0],
         material="floor_mat",
     )
     t = 0.05
     H = layout.height
-    walls = [
-        ([xmin - t, cy, H / 2], [t, hy + 2 * t, H / 2]),
-        ([xmax + t, cy, H / 2], [t, hy + 2 * t, H / 2]),
-        ([cx, ymin - t, H / 2], [hx + 2 * t, t, H / 2]),
-        ([cx, ymax + t, H / 2], [hx + 2 * t, t, H / 2]),
-    ]
-    for k, (pos, size) in enumerate(walls):
+    if layout.enclosed:
+        walls = [
+            ([xmin - t, cy, H / 2], [t, hy + 2 * t, H / 2]),
+            ([xmax + t, cy, H / 2], [t, hy + 2 * t, H / 2]),
+            ([cx, ymin - t, H / 2], [hx + 2 * t, t, H / 2]),
+            ([cx, ymax + t, H / 2], [hx + 2 * t, t, H / 2]),
+        ]
+        for k, (pos, size) in enumerate(walls):
+            wb.add_geom(
+                name=f"wall{k}", type=mujoco.mjtGeom.mjGEOM_BOX, size=size, pos=pos,
+                rgba=list(layout.wall_rgba),
+            )
         wb.add_geom(
-            name=f"wall{k}", type=mujoco.mjtGeom.mjGEOM_BOX, size=size, pos=pos,
-            rgba=list(layout.wall_rgba),
+            name="ceiling", type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx + 2 * t, hy + 2 * t, t],
+            pos=[cx, cy, H + t], rgba=list(layout.ceiling_rgba),
         )
-    wb.add_geom(
-        name="ceiling", type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx + 2 * t, hy + 2 * t, t],
-        pos=[cx, cy, H + t], rgba=list(layout.ceiling_rgba),
-    )
     for k, o in enumerate(layout.obstacles):
         _add_obstacle(spec, o, k)
 

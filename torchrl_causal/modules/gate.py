@@ -63,6 +63,14 @@ def _check_prob(name: str, value) -> float:
     return v
 
 
+def _concrete(device) -> torch.device:
+    """``"cuda"`` -> ``cuda:<current>`` (tensors always carry an index; a bare name does not)."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", torch.cuda.current_device())
+    return device
+
+
 class CBNGate(TensorDictModuleBase):
     """Epsilon-greedy action selection gated by per-action causal reward models.
 
@@ -229,7 +237,7 @@ class CBNGate(TensorDictModuleBase):
         )
         self.in_keys = [action_value_key, causal_state_key]
         self.out_keys = [action_key, *self.diagnostic_keys.values()]
-        device = torch.device(device) if device is not None else None
+        device = _concrete(device) if device is not None else None
         self.register_buffer("eps_init", torch.as_tensor(eps_init, dtype=torch.float32, device=device))
         self.register_buffer("eps_end", torch.as_tensor(eps_end, dtype=torch.float32, device=device))
         self.register_buffer("eps", torch.as_tensor(eps_init, dtype=torch.float32, device=device))
@@ -303,7 +311,7 @@ class CBNGate(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         q = tensordict.get(self.action_value_key)
         device = q.device
-        if self.generator is not None and self.generator.device != device:
+        if self.generator is not None and _concrete(self.generator.device) != device:
             raise RuntimeError(
                 f"action_value is on {device} but the gate's generator is on "
                 f"{self.generator.device}: build the gate with device={device}"
