@@ -216,6 +216,11 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     _require(fn in LOSS_FUNCTIONS, "loss.function", fn, f"one of {sorted(LOSS_FUNCTIONS)}")
     opt = _get(cfg, "optim.name")
     _require(opt in OPTIMIZERS, "optim.name", opt, f"one of {OPTIMIZERS}")
+    kb = _get(cfg, "eval.keep_best")
+    _require(isinstance(kb, bool), "eval.keep_best", kb, "true or false")
+    fe = _get(cfg, "eval.final_episodes")
+    _require(isinstance(fe, int) and not isinstance(fe, bool) and fe >= 0,
+             "eval.final_episodes", fe, "an integer >= 0")
     dd = _get(cfg, "loss.double_dqn")
     _require(isinstance(dd, bool), "loss.double_dqn", dd, "true or false")
     rs = _get(cfg, "loss.reward_scale")

@@ -105,6 +105,13 @@ def _tail_mean(x: pd.Series, n: int) -> float:
 
 
 def _final_eval(run_dir: Path) -> dict:
+    """Greedy success per layout: ``summary.json``'s final evaluation (``eval.final_episodes``
+    episodes), else the last periodic evaluation in ``eval.csv``."""
+    summary = run_dir / "summary.json"
+    if summary.exists():
+        final = json.loads(summary.read_text()).get("final_eval") or {}
+        if final:
+            return {f"eval_success_{k}": float(v["success_rate"]) for k, v in final.items()}
     path = run_dir / "eval.csv"
     if not path.exists():
         return {}

@@ -20,6 +20,7 @@ transform is :class:`torchrl_causal.data.CausalLearningHook`, TorchRL's
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -349,6 +350,7 @@ def train(cfg: DictConfig) -> dict:
     }
     tracker = EpisodeTracker(gate_keys)
     logger_state = None
+    best = None  # eval.keep_best: the best periodic evaluation's snapshot
 
     def restart_collector():
         # Checkpoints fall on episode ends. Right after one (in the uninterrupted
@@ -383,6 +385,7 @@ def train(cfg: DictConfig) -> dict:
             "rows": {"episodes": ep_csv.n_rows, "eval": eval_csv.n_rows,
                      "relearns": rel_csv.n_rows},
             "rng": ru.rng_state(),
+            "best": best,
         }
 
     if resume:
@@ -404,6 +407,7 @@ def train(cfg: DictConfig) -> dict:
         rel_csv.truncate(ckpt["rows"]["relearns"])
         logger_state = ckpt["logger"]
         ru.set_rng_state(ckpt["rng"])
+        best = ckpt.get("best")
         restart_collector()
     logger = make_logger(cfg, paths["logs"], logger_state)
 
@@ -494,7 +498,11 @@ def train(cfg: DictConfig) -> dict:
         # ---- evaluation, checkpoint, stop
         finished = st["frames"] >= total_frames or st["episodes"] >= total_episodes
         if st["frames"] >= st["next_eval"] or finished:
-            _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device)
+            res = _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device)
+            if cfg.eval.keep_best and res is not None and _better(res, best and best["result"]):
+                best = {"frames": st["frames"], "result": res,
+                        "actor": copy.deepcopy(actor.state_dict()),
+                        "explorer": copy.deepcopy(explorer.state_dict())}
             while st["next_eval"] <= st["frames"]:
                 st["next_eval"] += eval_every
         at_episode_end = bool(done[-1])
@@ -536,31 +544,51 @@ def train(cfg: DictConfig) -> dict:
         print(f"Stopped after {st['frames']} frames (checkpoint.stop_after_frames); resume with "
               f"output_dir={out} checkpoint.resume=true")
         return summary
+    if best is not None:
+        # eval.keep_best: the final policy is the best periodic evaluation's snapshot
+        actor.load_state_dict(best["actor"])
+        explorer.load_state_dict(best["explorer"])
+        summary["selected_frames"] = best["frames"]
     summary["final_eval"] = final_evaluation(cfg, variant, policy, eval_envs, device)
     summary.update(write_outputs(cfg, variant, paths, actor, hook))
     paths["summary"].write_text(json.dumps(summary, indent=2, default=str))
     return summary
 
 
-def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device):
+def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device) -> dict | None:
+    """Periodic greedy evaluation (``eval.episodes``) on the training layout; returns its result."""
     if cfg.eval.episodes == 0:
-        return
+        return None
     st["n_evals"] += 1
-    for i, layout in enumerate(eval_envs):
-        if eval_envs[layout] is None:
+    results = {}
+    # periodic evaluations run on the training layout only (the held-out split is
+    # evaluated once, after training, by final_evaluation)
+    for i, layout in enumerate([cfg.env.layout]):
+        if eval_envs.get(layout) is None:
             eval_envs[layout] = build_env(cfg, variant, layout, device)
         res = evaluate(policy, eval_envs[layout], cfg.eval.episodes,
                        seed=int(cfg.seed) * 1009 + 31 * st["n_evals"] + i)
         eval_csv.write({"frames": st["frames"], "episodes": st["episodes"], "layout": layout,
                         **res})
+        results[layout] = res
         if logger is not None:
             for key, val in res.items():
                 logger.log_scalar(f"eval_{layout}/{key}", val, step=st["frames"])
+    return results[cfg.env.layout]
+
+
+def _better(res: dict, best: dict | None) -> bool:
+    """Greedy success first, then mean reward; ties go to the later (longer-trained) policy."""
+    if best is None:
+        return True
+    return (res["success_rate"], res["mean_reward"]) >= (best["success_rate"], best["mean_reward"])
 
 
 def final_evaluation(cfg, variant, policy, eval_envs, device) -> dict:
     """``eval.final_episodes`` greedy episodes per evaluation layout (the headline figures)."""
     out = {}
+    if cfg.eval.final_episodes == 0:
+        return out
     for i, layout in enumerate(eval_envs):
         if eval_envs[layout] is None:
             eval_envs[layout] = build_env(cfg, variant, layout, device)

@@ -1,4 +1,10 @@
-"""DroneNavEnv: rendering, actions, reward/termination, seeding, specs, gym, bad options."""
+"""DroneNavEnv: rendering, actions, reward/termination, seeding, specs, gym, bad options.
+
+The reward/termination tests here check the thesis's reward exactly (the
+``envs`` fixture builds ``reward="thesis"`` envs); the default ``"progress"``
+reward, the geofence and the enclosed hall are tested in
+``tests/test_envs_rewards.py``.
+"""
 
 import math
 import os
@@ -41,7 +47,8 @@ def act(env, name_or_idx, td=None):
 
 @pytest.fixture(scope="module")
 def envs():
-    made = {m: DroneNavEnv(execution=m, seed=0) for m in MODES}
+    """Thesis-scene envs with the thesis's reward (the values asserted below)."""
+    made = {m: DroneNavEnv(execution=m, reward="thesis", seed=0) for m in MODES}
     yield made
     for e in made.values():
         e.close()
@@ -79,7 +86,8 @@ def test_goal_visible_ahead_absent_behind(envs):
 
 def test_depth_to_wall_within_2_percent():
     # facing the +x wall at x = 2.0 from x = 0.0: camera 0.125 m ahead of the centre
-    env = DroneNavEnv(open_layout(arena=(-3.0, -3.0, 2.0, 3.0)), seed=0)
+    # (walls exist only in an enclosed layout; an open one's arena is a geofence)
+    env = DroneNavEnv(open_layout(arena=(-3.0, -3.0, 2.0, 3.0), enclosed=True), seed=0)
     td = env.reset()
     expected = 2.0 - 0.125
     depth = td["depth"]
@@ -275,6 +283,10 @@ def test_gymnasium_registration_and_checker():
     check_env(env.unwrapped, skip_render_check=True)
     obs, info = env.reset(seed=0)
     assert env.observation_space.contains(obs)
+    # every bool key (out_of_bounds included) is MultiBinary / int8, not a float Box
+    for key in ("goal_in_sight", "crashed", "reached", "out_of_bounds"):
+        assert isinstance(env.observation_space[key], gym.spaces.MultiBinary), key
+        assert obs[key].dtype == np.int8, key
     obs, r, term, trunc, info = env.step(A["forward"])
     assert isinstance(r, float) and set(info) == {"crashed", "reached"}
     env.close()

@@ -42,6 +42,29 @@ def test_thesis_layout_geometry():
     assert face_x - (gp[0] + 0.2) > np.hypot(*DRONE_HALF_EXTENTS[:2])
 
 
+def test_open_thesis_layout_and_enclosed_hall():
+    """Open (default): only the floor is solid, arena x height is a geofence; the
+    enclosed hall keeps the old walls and ceiling."""
+    lay, hall = thesis_layout(), thesis_layout(enclosed=True)
+    assert not lay.enclosed and lay.arena == (-2.0, -3.0, 5.0, 3.0) and lay.height == 3.0
+    assert hall.enclosed and hall.arena == (-1.5, -2.5, 4.5, 2.5) and hall.height == 2.5
+    assert hall.name != lay.name and hall.fingerprint() != lay.fingerprint()
+    # the bounds belong to the flight volume
+    assert lay.inside((-2.0, -3.0, 3.0)) and lay.inside((5.0, 3.0, 1.0))
+    for p in [(-2.01, 0, 1), (5.01, 0, 1), (0, -3.01, 1), (0, 3.01, 1), (0, 0, 3.01)]:
+        assert not lay.inside(p), p
+    assert lay.inside(lay.start_pos) and lay.inside(lay.goal_point())
+    geoms = {}
+    for name, layout in (("open", lay), ("hall", hall)):
+        model, _ = build_model(layout)
+        geoms[name] = {
+            mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, i) for i in range(model.ngeom)
+        }
+    solid = {"ceiling", "wall0", "wall1", "wall2", "wall3"}
+    assert solid <= geoms["hall"] and not (solid & geoms["open"])
+    assert _start_contacts(hall) == 0 and free_path_exists(hall)
+
+
 def test_blocked_layout_is_not_solvable():
     lay = thesis_layout()
     wall = Obstacle(center=(1.25, 0.0, 1.25), half_size=(0.1, 2.6, 1.25))
@@ -60,6 +83,8 @@ def test_random_layouts_deterministic_solvable_and_start_free(split):
         assert gen.split_of(lay) == split
         assert free_path_exists(lay)
         assert _start_contacts(lay) == 0, lay.name
+        # random layouts are open: the start and the goal point lie in the flight volume
+        assert not lay.enclosed and lay.inside(lay.start_pos) and lay.inside(lay.goal_point())
     assert gen.layout(0) != gen.layout(1)
     assert RandomLayoutGenerator(split=split, seed=4).layout(0) != gen.layout(0)
 

@@ -33,7 +33,18 @@ def test_every_variant_config_is_valid(name, tmp_path):
     cfg = _cfg(name, [f"output_dir={tmp_path}"])
     v = ru.validate_config(cfg, tmp_path)
     assert v.name == name == cfg.variant
-    assert cfg.loss.gamma == 0.9 and cfg.optim.lr == 0.00025 and cfg.optim.eps == 1e-8
+    # default preset: progress reward, Huber, Double DQN, Adam (docs/recipes.rst, "Presets")
+    assert cfg.preset_name == "default" and cfg.env.reward == "progress"
+    assert cfg.loss.function == "huber" and cfg.loss.double_dqn and cfg.optim.name == "adam"
+    assert ru.reward_scale(cfg) == 1.0
+    # the thesis preset keeps every value sec. 5.1 states
+    th = _cfg(name, [f"output_dir={tmp_path}", "preset=thesis"])
+    ru.validate_config(th, tmp_path)
+    assert th.preset_name == "thesis" and th.env.reward == "thesis"
+    assert th.loss.gamma == 0.9 and th.optim.lr == 0.00025 and th.optim.eps == 1e-8
+    assert th.optim.name == "rmsprop" and th.loss.function == "l2" and not th.loss.double_dqn
+    assert th.loss.updates_per_frame == 1.0 and ru.reward_scale(th) == 1.0
+    assert ru.reward_scale(_cfg(name, ["env.reward=thesis"])) == 0.01  # auto scale
     assert cfg.gate.prob_causal_model == 0.7 and cfg.gate.threshold == 0.75
     assert cfg.causal.k == 200 and cfg.env.image_size == 84 and cfg.env.max_steps == 200
     expected_gate = {"cbn_p": "p", "cbn_pn": "pn", "cbn_v2": "v2", "cbn_defined": "v2"}
@@ -51,6 +62,14 @@ def test_every_variant_config_is_valid(name, tmp_path):
         ("exploration.eps_end=2", "exploration.eps_end=2"),
         ("gate.mode=pnx", "gate.mode='pnx'"),
         ("collector.total_frames=0", "collector.total_frames=0"),
+        ("env.reward=bogus", "env.reward='bogus'"),
+        ("loss.function=l1", "loss.function='l1'"),
+        ("optim.name=sgd", "optim.name='sgd'"),
+        ("loss.reward_scale=-1", "loss.reward_scale=-1"),
+        ("eval.keep_best=3", "eval.keep_best=3"),
+        ("loss.learning_starts=20000", "loss.learning_starts=20000"),
+        ("loss.target_update_interval=100000", "loss.target_update_interval=100000"),
+        ("device=tpu", "device='tpu'"),
         ("logger.backend=mlflowx", "logger.backend='mlflowx'"),
         ("checkpoint.resume=true", "checkpoint.resume"),
     ],

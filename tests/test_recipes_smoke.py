@@ -29,6 +29,7 @@ TINY = [
     "exploration.annealing_frames=200",
     "eval.interval_frames=0",
     "eval.episodes=1",
+    "eval.final_episodes=1",
     "checkpoint.interval_frames=100",
     "progress=false",
     "threads=1",
@@ -57,11 +58,13 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     assert len(eps) == summary["episodes"] >= 3
     assert (eps["length"] <= 60).all() and eps["frames"].is_monotonic_increasing
     assert set(eps["success"]) <= {0, 1} and set(eps["crash"]) <= {0, 1}
-    # a truncated episode ends at 60 steps; a crash/reach earlier
+    # a truncated episode ends at 60 steps; a crash/reach/geofence exit earlier
     ended_early = eps["length"] < 60
-    assert ((eps["success"] + eps["crash"])[ended_early] == 1).all()
+    assert ((eps["success"] + eps["crash"] + eps["out_of_bounds"])[ended_early] == 1).all()
     ev = pd.read_csv(out / "eval.csv")
-    assert sorted(set(ev["layout"])) == ["heldout", "thesis"]
+    assert sorted(set(ev["layout"])) == ["thesis"]  # periodic evaluations: training layout
+    assert sorted(summary["final_eval"]) == ["heldout", "thesis"]  # final: every eval layout
+    assert summary["selected_frames"] in set(ev["frames"])  # eval.keep_best
     assert sorted(set(ev["frames"])) == ([120, 240] if variant == "cbn_v2" else [240])
     assert ev["success_rate"].between(0, 1).all()
     for name in ("reward_ma20.png", "reward_ma50.png", "success_ma50.png"):

@@ -29,13 +29,14 @@ __all__ = ["GYM_ID", "DroneNavGymEnv", "register_envs"]
 #: Gymnasium id of the environment.
 GYM_ID = "torchrl_causal/DroneNav-v0"
 
-_FLAGS = ("goal_in_sight", "crashed", "reached")
+_FLAGS = ("goal_in_sight", "crashed", "reached", "out_of_bounds")
 
 
 class DroneNavGymEnv(gym.Env):
     """Gymnasium view of :class:`~torchrl_causal.envs.DroneNavEnv` (numpy, ``Dict`` observations).
 
-    Bool observation keys (``goal_in_sight``, ``crashed``, ``reached``) are
+    Bool observation keys (``goal_in_sight``, ``crashed``, ``reached``,
+    ``out_of_bounds``) are
     ``MultiBinary(1)`` (``int8``); the others are ``Box`` spaces with the
     TorchRL spec's bounds. ``info`` holds ``crashed`` and ``reached``.
 
