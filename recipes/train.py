@@ -578,10 +578,8 @@ def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device) ->
 
 
 def _better(res: dict, best: dict | None) -> bool:
-    """Greedy success first, then mean reward; ties go to the later (longer-trained) policy."""
-    if best is None:
-        return True
-    return (res["success_rate"], res["mean_reward"]) >= (best["success_rate"], best["mean_reward"])
+    """Higher greedy success wins; ties go to the later (longer-trained) policy."""
+    return best is None or res["success_rate"] >= best["success_rate"]
 
 
 def final_evaluation(cfg, variant, policy, eval_envs, device) -> dict:
@@ -649,6 +647,10 @@ def draw_cbns(dags: dict, expert: dict, folder: Path, tag: str) -> list[Path]:
 def main(cfg: DictConfig) -> None:
     summary = train(cfg)
     if not summary.get("stopped_early"):
+        for layout, res in summary.get("final_eval", {}).items():
+            print(f"Greedy success on {layout}: {res['success_rate']:.2f} "
+                  f"({cfg.eval.final_episodes} episodes; collisions {res['collisions']}, "
+                  f"geofence exits {res['out_of_bounds']}, mean length {res['mean_length']:.1f})")
         print(f"Run folder: {summary['output_dir']}")
         print(f"Plots: {summary['plots_dir']}")
         if "table_5_1" in summary:

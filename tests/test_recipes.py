@@ -168,3 +168,8 @@ def test_reproduce_plan_covers_protocol(tmp_path):
     assert ks == ["causal.k=100", "causal.k=400", "causal.k=600"]
     with pytest.raises(ValueError, match="--seeds=0"):
         reproduce.main(["--seeds", "0", "--dry-run", "--root", str(tmp_path)])
+
+
+def test_unknown_preset_is_named():
+    with pytest.raises(Exception, match="bogus"):
+        _cfg("cbn_v2", ["preset=bogus"])

@@ -8,6 +8,7 @@ registration) stays cheap and free of import cycles with torchrl.
   :class:`RandomLayoutGenerator`, :class:`Layout`, :class:`Obstacle`.
 * :mod:`~torchrl_causal.envs.scene` -- :func:`build_model` (MjSpec), :class:`SceneRenderer`.
 * :mod:`~torchrl_causal.envs.control` -- kinematic and physics (cascaded PID) execution.
+* :mod:`~torchrl_causal.envs.rewards` -- the ``"progress"`` (default) and ``"thesis"`` rewards.
 * :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``.
 """
 
@@ -32,6 +33,11 @@ _LAZY = {
     "PhysicsExecutor": "control",
     "CascadedPID": "control",
     "action_deltas": "control",
+    "REWARDS": "rewards",
+    "ProgressReward": "rewards",
+    "ThesisReward": "rewards",
+    "StepOutcome": "rewards",
+    "make_reward": "rewards",
     "DroneNavGymEnv": "gym_registration",
     "register_envs": "gym_registration",
     "GYM_ID": "gym_registration",

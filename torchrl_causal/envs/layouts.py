@@ -5,10 +5,11 @@ objects): arena bounds, obstacles, the goal board, the start pose, colours and
 lighting. :func:`~torchrl_causal.envs.scene.build_model` turns it into a MuJoCo
 model.
 
-* :func:`thesis_layout` is the embedded default (thesis Fig. 2.3): the drone
-  starts 1 m above the floor looking at the goal board about 3 m ahead; one
-  pillar stands between them, slightly right of the line of sight, so the goal
-  is partly visible from the start and the drone must side-step to pass.
+* :func:`thesis_layout` is the embedded default (thesis Fig. 2.3): an open
+  field with a geofence; the drone starts 1 m above the floor looking at the
+  goal board about 3 m ahead; one pillar stands between them, slightly right of
+  the line of sight, so the goal is partly visible from the start and the drone
+  must side-step to pass.
 * :class:`RandomLayoutGenerator` draws layouts from a seeded generator:
   obstacle count, size, shape and position, goal position and size, start pose,
   colours, floor/obstacle textures and lighting. Layout ``i`` of a split is a
@@ -128,8 +129,10 @@ class Layout:
 
     Args:
         name: a label (``"thesis"``, ``"train-17"``, ...).
-        arena: ``(xmin, ymin, xmax, ymax)`` of the walls' inner faces (m).
-        height: ceiling height (m).
+        arena: ``(xmin, ymin, xmax, ymax)`` of the flight volume (m); for an
+            ``enclosed`` layout, the walls' inner faces.
+        height: top of the flight volume (m); for an ``enclosed`` layout, the
+            ceiling.
         start_pos: drone centre at reset ``(x, y, z)``.
         start_yaw_deg: drone heading at reset (deg, counter-clockwise from +x).
         goal_center: centre of the goal board ``(x, y, z)``.
@@ -365,7 +368,7 @@ class RandomLayoutGenerator:
     """Seeded random layouts with disjoint ``train`` / ``heldout`` splits.
 
     Layout ``index`` of a split is a pure function of ``(seed, split, index)``.
-    Drawn quantities: arena size and ceiling height; 1 to ``max_obstacles``
+    Drawn quantities: flight-volume size and height (open fields); 1 to ``max_obstacles``
     obstacles (boxes or cylinders, size, position, yaw, colour, plain or
     checker texture), at least one of them placed across the start-goal line;
     the goal board's size, height, position and facing; the start pose (the

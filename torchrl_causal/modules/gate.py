@@ -71,6 +71,15 @@ def _concrete(device) -> torch.device:
     return device
 
 
+def _kth_allowed(mask: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """Index of the ``k``-th (0-based) True entry of each row of ``mask`` (``k < row sum``).
+
+    The cumulative count of True entries is ``<= k`` exactly at the positions before
+    the ``k``-th True entry, so counting them gives its index (vectorised, no loops).
+    """
+    return (mask.long().cumsum(-1) <= k.unsqueeze(-1)).sum(-1)
+
+
 class CBNGate(TensorDictModuleBase):
     """Epsilon-greedy action selection gated by per-action causal reward models.
 
@@ -103,6 +112,17 @@ class CBNGate(TensorDictModuleBase):
     ranges over known actions; ties go to the lowest index (the thesis's
     ``MaxIndex``).
 
+    Action masks: with ``action_mask_key`` set, a bool mask ``[*batch, n_actions]``
+    (True = allowed, as written by :class:`~torchrl.envs.transforms.ActionMask`)
+    is read from that key and no masked action is ever proposed, vetoed into or
+    replaced by: the greedy action is the argmax of Q over allowed actions, the
+    epsilon-random action and the veto's redraw are uniform over allowed actions
+    (the redraw over those other than the proposal; when the proposal is the
+    only allowed action it is kept and ``gate_vetoed`` stays False), and
+    ``argmax_a' P(a')`` ranges over known allowed actions. The same four draws
+    per element are made, and an all-True mask gives exactly the actions of no
+    mask.
+
     Exploration mode: under ``ExplorationType.RANDOM`` (collectors' default)
     epsilon is used; under any other exploration type epsilon is 0 and the CBN
     still applies when ``eval_gate=True`` (default), or the greedy action is
@@ -126,6 +146,13 @@ class CBNGate(TensorDictModuleBase):
         action_key: where the executed action is written (``"action"``).
         action_value_key: where the Q-values are read (``"action_value"``).
         causal_state_key: where the discretised state is read (``"causal_state"``).
+        action_mask_key: where a bool action mask ``[*batch, n_actions]`` (True =
+            allowed) is read, as :class:`~torchrl.modules.EGreedyModule` and
+            :class:`~torchrl.modules.QValueActor` read theirs; ``None`` (default)
+            for no mask. When set, the key must be present in every input
+            (``KeyError`` otherwise), the mask must be bool with the shape of
+            ``action_value``, and every row must allow at least one action
+            (``ValueError`` otherwise).
         chosen_action_value_key: updated to ``Q(s, executed action)`` when present
             in the input (``QValueActor`` writes it for the greedy action).
         action_space: ``"categorical"`` (integer actions), ``"one_hot"``, or
@@ -146,7 +173,7 @@ class CBNGate(TensorDictModuleBase):
     * ``gate_consulted`` (bool): the CBN was consulted (tables present, the
       action's model known, and the ``prob_causal_model`` draw succeeded).
     * ``gate_vetoed`` (bool): the veto fired and the action was redrawn
-      among the others.
+      among the others (the allowed others, with an action mask).
     * ``gate_replaced`` (bool): Alg. 3's positive branch fired and the action
       was set to ``argmax P`` (may equal the DQN's action when it is already
       the best).
@@ -155,7 +182,7 @@ class CBNGate(TensorDictModuleBase):
     * ``gate_p_pos`` / ``gate_p_neg`` (float32): P(positive / negative reward
       | s, ``gate_dqn_action``); NaN where no model was available.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictSequential
@@ -171,6 +198,24 @@ class CBNGate(TensorDictModuleBase):
         torch.Size([4])
         >>> gate.step(500); round(gate.eps.item(), 3)
         0.525
+
+        With an action mask, masked actions are never taken, whatever the branch:
+
+        >>> from torchrl_causal.causal.tables import RewardTables
+        >>> p_pos = torch.full((8, 1728), 0.9)
+        >>> p_pos[2] = 0.05  # the DQN's favourite action 2 is vetoed...
+        >>> gate = CBNGate("pn", eps_init=0.5, eps_end=0.5, seed=0, action_mask_key="action_mask",
+        ...                tables=RewardTables(p_pos, torch.ones(8, dtype=torch.bool)))
+        >>> q = torch.zeros(1000, 8)
+        >>> q[:, 2] = 1.0
+        >>> mask = torch.zeros(1000, 8, dtype=torch.bool)
+        >>> mask[:, [2, 5, 6]] = True  # ...into 5 or 6, the only other allowed actions
+        >>> td = gate(TensorDict(action_value=q, action_mask=mask,
+        ...                      causal_state=torch.zeros(1000, 9, dtype=torch.long), batch_size=[1000]))
+        >>> sorted(td["action"].unique().tolist())
+        [2, 5, 6]
+        >>> sorted(td["action"][td["gate_vetoed"]].unique().tolist())
+        [5, 6]
     """
 
     def __init__(
@@ -187,6 +232,7 @@ class CBNGate(TensorDictModuleBase):
         action_key: NestedKey = "action",
         action_value_key: NestedKey = "action_value",
         causal_state_key: NestedKey = "causal_state",
+        action_mask_key: NestedKey | None = None,
         chosen_action_value_key: NestedKey | None = "chosen_action_value",
         action_space: str | None = None,
         diagnostics_prefix: str | None = "gate_",
@@ -226,6 +272,7 @@ class CBNGate(TensorDictModuleBase):
         self.action_key = action_key
         self.action_value_key = action_value_key
         self.causal_state_key = causal_state_key
+        self.action_mask_key = action_mask_key
         self.chosen_action_value_key = chosen_action_value_key
         self.action_space = action_space
         self.eval_gate = bool(eval_gate)
@@ -236,6 +283,8 @@ class CBNGate(TensorDictModuleBase):
             else {}
         )
         self.in_keys = [action_value_key, causal_state_key]
+        if action_mask_key is not None:
+            self.in_keys.append(action_mask_key)
         self.out_keys = [action_key, *self.diagnostic_keys.values()]
         device = _concrete(device) if device is not None else None
         self.register_buffer("eps_init", torch.as_tensor(eps_init, dtype=torch.float32, device=device))
@@ -322,19 +371,34 @@ class CBNGate(TensorDictModuleBase):
                 f"action_value has {n_actions} actions, the gate has n_actions={self.n_actions}"
             )
         shape = q.shape[:-1]
+        mask = self._get_mask(tensordict, q)
         expl = exploration_type()
         random_mode = expl in (ExplorationType.RANDOM, None)
-        greedy = q.argmax(-1)
+        if mask is None:
+            greedy = q.argmax(-1)
+        else:
+            low = -math.inf if q.is_floating_point() else torch.iinfo(q.dtype).min
+            greedy = q.masked_fill(~mask, low).argmax(-1)
+            # rows whose allowed Q-values all equal the fill value: the first allowed action
+            bad = ~mask.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)
+            greedy = torch.where(bad, mask.long().argmax(-1), greedy)
         tables = self._tables  # read once: a concurrent set_tables cannot tear a call
         use_cbn = random_mode or self.eval_gate
         eps = self.eps.to(device) if random_mode else torch.zeros((), device=device)
 
         # One draw of each kind per element on every call (reproducible streams):
         # u_eps, u_cbn uniform in [0, 1); r_any uniform in {0..A-1}; r_other in {0..A-2}.
+        # With a mask, r_any is uniform over the allowed actions (the k-th allowed one,
+        # k = floor(u * n_allowed)); the veto's redraw is made from u[3] below. With an
+        # all-True mask both reduce to the unmasked draws bit for bit.
         u = torch.rand((4, *shape), generator=self.generator, device=device)
         u_eps, u_cbn = u[0], u[1]
-        r_any = (u[2] * n_actions).long().clamp_max_(n_actions - 1)
-        r_other = (u[3] * (n_actions - 1)).long().clamp_max_(n_actions - 2)
+        if mask is None:
+            r_any = (u[2] * n_actions).long().clamp_max_(n_actions - 1)
+            r_other = (u[3] * (n_actions - 1)).long().clamp_max_(n_actions - 2)
+        else:
+            n_allowed = mask.sum(-1)
+            r_any = _kth_allowed(mask, torch.minimum((u[2] * n_allowed).long(), n_allowed - 1))
 
         if tables is not None and use_cbn:
             if tables.n_actions != n_actions:
@@ -350,6 +414,7 @@ class CBNGate(TensorDictModuleBase):
         false = torch.zeros(shape, dtype=torch.bool, device=device)
         explored = u_eps < eps
         consulted = vetoed = replaced = false
+        # proposal, greedy and r_any are allowed actions; so is every action set below
         if self.variant == "v2" and known_all is not None:
             # Alg. 4 decides to consult (on the greedy action) before epsilon-greedy
             ok_greedy = known_all.gather(-1, greedy.unsqueeze(-1)).squeeze(-1)
@@ -373,9 +438,23 @@ class CBNGate(TensorDictModuleBase):
                 else:
                     replaced = consulted & (pp < self.threshold)
             if self.variant != "p":
-                action = torch.where(vetoed, r_other + (r_other >= proposal).long(), action)
+                if mask is None:
+                    other = r_other + (r_other >= proposal).long()
+                else:
+                    # uniform among the allowed actions other than the proposal (itself
+                    # allowed); with none, the proposal stands and is not flagged vetoed
+                    others = mask.clone()
+                    others.scatter_(-1, proposal.unsqueeze(-1), False)
+                    n_others = n_allowed - 1
+                    k = torch.minimum((u[3] * n_others).long(), n_others - 1).clamp_min_(0)
+                    other = _kth_allowed(others, k)
+                    vetoed = vetoed & (n_others > 0)
+                action = torch.where(vetoed, other, action)
             if self.variant != "v2":
-                best = p_pos_all.masked_fill(~known_all, -1.0).argmax(-1)
+                # a replaced proposal is known (consulted) and allowed, so the argmax
+                # always lands on a known allowed action
+                eligible = known_all if mask is None else known_all & mask
+                best = p_pos_all.masked_fill(~eligible, -1.0).argmax(-1)
                 action = torch.where(replaced, best, action)
 
         self._write_action(tensordict, action, n_actions)
@@ -401,6 +480,36 @@ class CBNGate(TensorDictModuleBase):
             tensordict.set(k["p_neg"], p_neg)
         return tensordict
 
+    def _get_mask(self, tensordict: TensorDictBase, q: torch.Tensor) -> torch.Tensor | None:
+        key = self.action_mask_key
+        if key is None:
+            return None
+        mask = tensordict.get(key, None)
+        if mask is None:
+            raise KeyError(
+                f"action_mask_key {key!r} not found in the input tensordict "
+                f"(keys: {list(tensordict.keys(include_nested=True, leaves_only=True))})"
+            )
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise ValueError(
+                f"the action mask {key!r} must be a bool tensor (True = allowed), "
+                f"got {getattr(mask, 'dtype', type(mask).__name__)}"
+            )
+        if mask.shape != q.shape:
+            raise ValueError(
+                f"the action mask {key!r} has shape {tuple(mask.shape)}, expected the shape of "
+                f"{self.action_value_key!r}: {tuple(q.shape)} ([*batch, n_actions])"
+            )
+        mask = mask.to(q.device)
+        empty = ~mask.any(-1)
+        if empty.any():
+            rows = empty.nonzero().tolist()
+            raise ValueError(
+                f"the action mask {key!r} (shape {tuple(mask.shape)}) allows no action in "
+                f"{len(rows)} row(s), e.g. at batch index {tuple(rows[0])}"
+            )
+        return mask
+
     def _write_action(self, tensordict: TensorDictBase, action: torch.Tensor, n_actions: int):
         space = self.action_space
         old = tensordict.get(self.action_key, None)
@@ -422,4 +531,5 @@ class CBNGate(TensorDictModuleBase):
             f"variant={self.variant!r}, prob_causal_model={self.prob_causal_model}, "
             f"threshold={self.threshold}, eps={self.eps.item():.4f}, "
             f"tables={'set' if self._tables is not None else 'None'}"
+            + (f", action_mask_key={self.action_mask_key!r}" if self.action_mask_key is not None else "")
         )
