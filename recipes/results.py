@@ -29,6 +29,7 @@ import yaml  # noqa: E402
 
 __all__ = [
     "moving_average",
+    "mean_ci95",
     "load_episodes",
     "load_runs",
     "stack_curves",
@@ -92,6 +93,20 @@ def stack_curves(curves: Sequence[Sequence[float]]) -> np.ndarray:
     return out
 
 
+def mean_ci95(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column mean over seeds (rows, NaN = missing) and the half-width of its 95 %
+    confidence interval (Student t with n - 1 dof; NaN where fewer than 2 seeds)."""
+    from scipy import stats
+
+    n = np.sum(~np.isnan(curves), axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.nanmean(curves, axis=0)
+        sd = np.nanstd(curves, axis=0, ddof=1) if curves.shape[0] > 1 else np.full_like(mean, np.nan)
+        half = stats.t.ppf(0.975, np.maximum(n - 1, 1)) * sd / np.sqrt(np.maximum(n, 1))
+    half[n < 2] = np.nan
+    return mean, half
+
+
 def plot_reward_curves(
     groups: Mapping[str, Sequence[Sequence[float]]],
     window: int,
@@ -101,7 +116,9 @@ def plot_reward_curves(
     vlines: Mapping[str, Sequence[float]] | None = None,
     ylabel: str = "episode reward",
 ) -> Path:
-    """Draws smoothed episode-reward curves, one line (mean over seeds) per group.
+    """Draws smoothed episode-reward curves, one line (mean over seeds) per group,
+    with a band of the 95 % confidence interval of the mean where several seeds exist,
+    over the episodes that every seed of the group reached.
 
     Args:
         groups: label -> list of per-seed reward sequences (one value per episode).
@@ -125,15 +142,17 @@ def plot_reward_curves(
         if not seeds:
             continue
         color = colors[i % len(colors)]
-        smooth = stack_curves([moving_average(s, window) for s in seeds])
-        with np.errstate(invalid="ignore"):
-            mean = np.nanmean(smooth, axis=0)
-            std = np.nanstd(smooth, axis=0)
+        # episodes every seed reached (the band over fewer seeds is not comparable)
+        common = min(len(s) for s in seeds)
+        smooth = stack_curves([moving_average(s, window)[:common] for s in seeds])
+        mean, half = mean_ci95(smooth)
+        if ylabel == "success":
+            half = np.minimum(half, np.minimum(mean, 1.0 - mean))  # a rate stays in [0, 1]
         x = np.arange(1, len(mean) + 1)
         n = len(seeds)
         ax.plot(x, mean, color=color, label=f"{label} (n={n})" if n > 1 else label)
         if n > 1:
-            ax.fill_between(x, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
+            ax.fill_between(x, mean - half, mean + half, color=color, alpha=0.2, linewidth=0)
         for ep in list((vlines or {}).get(label, []))[:10]:
             ax.axvline(ep, color=color, linestyle="--", linewidth=0.8, alpha=0.6)
     ax.set_xlabel("episode")
