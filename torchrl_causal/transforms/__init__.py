@@ -4,8 +4,8 @@
 * :class:`GoalFeatures` -- goal in sight / distance / angle from a
   :class:`~torchrl_causal.perception.goal.GoalMeter` (for envs that do not
   measure the goal themselves; ``DroneNavEnv`` does).
-* :class:`Discretize` -- ``causal_features`` (float32 ``[..., 9]``) and
-  ``causal_state`` (int64 ``[..., 9]``, ``MultiCategorical``).
+* :class:`Discretize` -- ``causal_features`` (float32 ``[..., n_vars]``, 9 for the default schema) and
+  ``causal_state`` (int64 ``[..., n_vars]``, ``MultiCategorical``) for any ``VariableSchema``.
 * :func:`make_causal_transforms` -- the whole stack for a ``DroneNavEnv``.
 
 The altitude needs no transform: ``Discretize`` reads the env's ``altitude``
