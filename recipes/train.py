@@ -220,12 +220,26 @@ def _flag(td, key) -> bool:
     return bool(val.any()) if val is not None else False
 
 
+def seed_transforms(env, seed: int) -> None:
+    """Reseeds the env's transforms that sample (``DepthSections``' pixel draws): TorchRL's
+    ``env.set_seed`` does not reach them, and their streams must restart with the env's
+    so that a resumed run and an evaluation do not depend on what ran before."""
+    from torchrl.envs import Compose
+
+    transform = getattr(env, "transform", None)
+    transforms = list(transform) if isinstance(transform, Compose) else [transform]
+    for t in transforms:
+        if t is not None and hasattr(t, "set_seed"):
+            t.set_seed(int(seed))
+
+
 @torch.no_grad()
 def evaluate(policy, env, episodes: int, seed: int) -> dict:
     """Greedy episodes (epsilon 0; the gate still applies): success rate, reward, collisions."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     env.set_seed(seed)
+    seed_transforms(env, seed)
     rewards, successes, crashes, exits, lengths = [], [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
@@ -356,7 +370,9 @@ def train(cfg: DictConfig) -> dict:
         # Checkpoints fall on episode ends. Right after one (in the uninterrupted
         # run as in the resumed one) the env is reseeded and reset, so both runs
         # continue from the same state: see docs/recipes.rst, "Resume".
-        collector.set_seed(int(cfg.seed) * 7919 + 104729 * st["n_ckpt"])
+        seed = int(cfg.seed) * 7919 + 104729 * st["n_ckpt"]
+        collector.set_seed(seed)
+        seed_transforms(env, seed)
         collector.reset()
 
     def save_checkpoint() -> None:
