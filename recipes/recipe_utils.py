@@ -26,6 +26,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from torchrl_causal.envs.rewards import REWARDS  # ``env.reward`` names: the env's own
+
 __all__ = [
     "Variant",
     "VARIANTS",
@@ -90,8 +92,6 @@ SCENES = {
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
 #: ``preset`` names (config group ``recipes/config/preset``).
 PRESETS = ("default", "thesis")
-#: ``env.reward`` names (:data:`torchrl_causal.envs.rewards.REWARDS`).
-REWARDS = ("progress", "thesis")
 #: ``loss.function`` -> the ``loss_function`` of :class:`torchrl.objectives.DQNLoss`.
 LOSS_FUNCTIONS = {"huber": "smooth_l1", "l2": "l2"}
 OPTIMIZERS = ("adam", "rmsprop")

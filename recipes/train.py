@@ -576,21 +576,18 @@ def _run_evals(cfg, variant, policy, eval_envs, eval_csv, st, logger, device) ->
     if cfg.eval.episodes == 0:
         return None
     st["n_evals"] += 1
-    results = {}
     # periodic evaluations run on the training layout only (the held-out split is
     # evaluated once, after training, by final_evaluation)
-    for i, layout in enumerate([cfg.env.layout]):
-        if eval_envs.get(layout) is None:
-            eval_envs[layout] = build_env(cfg, variant, layout, device)
-        res = evaluate(policy, eval_envs[layout], cfg.eval.episodes,
-                       seed=int(cfg.seed) * 1009 + 31 * st["n_evals"] + i)
-        eval_csv.write({"frames": st["frames"], "episodes": st["episodes"], "layout": layout,
-                        **res})
-        results[layout] = res
-        if logger is not None:
-            for key, val in res.items():
-                logger.log_scalar(f"eval_{layout}/{key}", val, step=st["frames"])
-    return results[cfg.env.layout]
+    layout = cfg.env.layout
+    if eval_envs.get(layout) is None:
+        eval_envs[layout] = build_env(cfg, variant, layout, device)
+    res = evaluate(policy, eval_envs[layout], cfg.eval.episodes,
+                   seed=int(cfg.seed) * 1009 + 31 * st["n_evals"])
+    eval_csv.write({"frames": st["frames"], "episodes": st["episodes"], "layout": layout, **res})
+    if logger is not None:
+        for key, val in res.items():
+            logger.log_scalar(f"eval_{layout}/{key}", val, step=st["frames"])
+    return res
 
 
 def _better(res: dict, best: dict | None) -> bool:

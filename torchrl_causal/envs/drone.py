@@ -452,7 +452,7 @@ class DroneNavEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = int(tensordict.get("action"))
-        d_before = self._distance_to_goal_point()
+        d_before = self._distance_to_goal_point(self._executor.pose())
         t0 = time.perf_counter()
         out = self._executor.execute(
             self._deltas[action], self._rng, self._goal_point, self.reach_radius
@@ -463,17 +463,16 @@ class DroneNavEnv(EnvBase):
         pose = self._executor.pose()
         out_of_bounds = not (out.crashed or out.reached) and not self.layout.inside(pose)
         obs = self._observe(out.crashed, out.reached, out_of_bounds)
-        in_sight = bool(obs["goal_in_sight"])
         reward = self.reward_fn(
-            StepOutcome(
+            StepOutcome(  # goal distance and angle are already 0 when not in sight
                 crashed=out.crashed,
                 reached=out.reached,
                 out_of_bounds=out_of_bounds,
-                in_sight=in_sight,
-                goal_distance=float(obs["goal_distance"]) if in_sight else 0.0,
-                goal_angle=float(obs["goal_angle"]) if in_sight else 0.0,
+                in_sight=bool(obs["goal_in_sight"]),
+                goal_distance=float(obs["goal_distance"]),
+                goal_angle=float(obs["goal_angle"]),
                 distance_before=d_before,
-                distance_after=self._distance_to_goal_point(),
+                distance_after=self._distance_to_goal_point(pose),
             )
         )
         terminated = out.crashed or out.reached or out_of_bounds
@@ -487,8 +486,8 @@ class DroneNavEnv(EnvBase):
         obs["done"] = ends[2:3]
         return self._pack(obs)
 
-    def _distance_to_goal_point(self) -> float:
-        x, y, z, _ = self._executor.pose()
+    def _distance_to_goal_point(self, pose) -> float:
+        x, y, z = pose[:3]
         g = self._goal_point
         return math.sqrt((x - g[0]) ** 2 + (y - g[1]) ** 2 + (z - g[2]) ** 2)
 

@@ -21,14 +21,14 @@ Why the default is not the thesis's reward (``docs/envs.rst``, "Reward"): the
 thesis pays about ``+90`` for *every* step the goal is in view, so hovering in
 view is worth nearly as much as reaching the goal when discounted (``gamma =
 0.9``: 888 against 948 for the 12-step path, measured in the env) and nearly
-nine times more over an undiscounted 200-step episode (17,784 against 2,017). A DQN trained on it
-learns to hover (the thesis noted that "the network learns to do nothing").
+nine times more over an undiscounted 200-step episode (17,784 against 2,017).
+A DQN trained on it learns to hover (the thesis noted that "the network learns to do nothing").
 Under :class:`ProgressReward` the discounted return orders reach > hover >
 crash for any ``gamma`` in (0, 1), and so does the undiscounted episode return.
 
 **Reward classes of the CBN.** The causal learner's reward node is positive
-iff the env reward is ``>= 0`` (:class:`~torchrl_causal.causal.CausalLearner`,
-``reward_threshold``). Under ``"progress"`` that means "the step moved the
+iff the env reward is ``>= 0`` (:class:`~torchrl_causal.causal.CausalLearner`).
+Under ``"progress"`` that means "the step moved the
 drone at least 1 cm closer to the goal point, or reached it"; under
 ``"thesis"`` it means "the goal is in view (or reached)", the thesis's
 binarisation.
