@@ -35,16 +35,17 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from torchrl_causal.causal.data import TransitionData
-from torchrl_causal.causal.expert import expert_dags
+from torchrl_causal.causal.expert import expert_dags as expert_dags_default
 from torchrl_causal.causal.inference import CBN, compile_tables, fit_cbn
 from torchrl_causal.causal.io import save_cbn
-from torchrl_causal.causal.structure import _check_options, learn_structure
+from torchrl_causal.causal.structure import _check_options, learn_structure, time_tiers
 from torchrl_causal.causal.tables import RewardTables
 from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, VariableSchema
 
@@ -53,15 +54,77 @@ __all__ = ["CausalLearner", "MODES"]
 MODES = ("learned", "defined")
 
 
+def _check_expert(dags, schema: VariableSchema, n_actions: int) -> dict[str, list[tuple[str, str]]]:
+    """Validated copy of ``expert_dags``: one DAG per action, edges forward in time."""
+    if not isinstance(dags, Mapping):
+        raise ValueError(
+            f"expert_dags must be a mapping {{action_name: [(source, target), ...]}}, got {type(dags).__name__}"
+        )
+    if len(dags) != n_actions:
+        raise ValueError(
+            f"expert_dags has {len(dags)} DAGs ({list(dags)}) but n_actions={n_actions}; "
+            "give one expert DAG per action"
+        )
+    tiers = {node: k for k, tier in enumerate(time_tiers(schema)) for node in tier}
+    out = {}
+    for name, edges in dags.items():
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"expert_dags keys must be action names (non-empty str), got {name!r}")
+        checked = []
+        for edge in edges:
+            if not (isinstance(edge, (tuple, list)) and len(edge) == 2):
+                raise ValueError(f"expert_dags[{name!r}]: an edge must be (source, target), got {edge!r}")
+            for node in edge:
+                if node not in tiers:
+                    raise ValueError(
+                        f"expert_dags[{name!r}]: edge {tuple(edge)!r} names {node!r}, which is not a "
+                        f"node of the schema; nodes: {schema.node_names()}"
+                    )
+            src, dst = edge
+            if tiers[src] >= tiers[dst]:
+                raise ValueError(
+                    f"expert_dags[{name!r}]: edge {(src, dst)!r} does not go forward in time "
+                    "(allowed: <var>_t -> <var>_t1, <var>_t -> reward, <var>_t1 -> reward)"
+                )
+            if (src, dst) not in checked:
+                checked.append((src, dst))
+        out[name] = checked
+    return out
+
+
+def _action_names(action_names, expert, n_actions: int) -> list[str]:
+    if action_names is None:
+        if expert is not None:
+            return list(expert)
+        if n_actions == len(ACTION_NAMES):
+            return list(ACTION_NAMES)
+        return [f"action_{i}" for i in range(n_actions)]
+    if isinstance(action_names, str):
+        raise ValueError(f"action_names must be a sequence of names, got the string {action_names!r}")
+    names = list(action_names)
+    if len(names) != n_actions:
+        raise ValueError(f"action_names has {len(names)} names {names} but n_actions={n_actions}")
+    if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
+        raise ValueError(f"action_names must be distinct non-empty strings, got {names}")
+    if expert is not None and set(names) != set(expert):
+        raise ValueError(f"action_names {names} must be the keys of expert_dags {list(expert)}")
+    return names
+
+
 class CausalLearner:
     """Learns (or fits) one CBN per action and compiles the reward tables.
 
+    Any env works: pass its schema, its number of actions, and (for
+    ``mode="defined"``) its expert DAGs, e.g. the grid world's
+    :func:`~torchrl_causal.envs.gridnav_expert_dags`.
+
     Args:
         schema: the variable schema of ``causal_state``.
-        n_actions: number of actions (8 for the drone; ``mode="defined"`` needs 8).
+        n_actions: number of actions (8 for the drone). With ``mode="defined"``
+            it must equal the number of expert DAGs (8 for the drone's default).
         mode: ``"learned"`` (BIC hill climbing, thesis Alg. 2) or ``"defined"``
-            (expert structures of :func:`~torchrl_causal.causal.expert.expert_dags`,
-            CPTs fitted from data at each relearn).
+            (the expert structures of ``expert_dags``, CPTs fitted from data at
+            each relearn).
         backend: structure-learning backend, ``"fast"`` or ``"pgmpy"``.
         min_rows: minimum transitions of an action for its model to be known.
         prior: Dirichlet pseudo count per CPT cell (default 1.0).
@@ -71,6 +134,29 @@ class CausalLearner:
         warm_start: start each search from the action's previous DAG (thesis Alg. 2 l. 4-6).
         max_rows: keep only the newest ``max_rows`` transitions per action (``None``: all).
         device: device of the compiled tables.
+        expert_dags: ``{action_name: [(source, target), ...]}``, one DAG per
+            action in action order, over the node names of ``schema``
+            (``"<var>_t"``, ``"<var>_t1"``, ``"reward"``), every edge forward in
+            time. ``None`` (default): the drone's
+            :func:`~torchrl_causal.causal.expert.expert_dags` in ``"defined"``
+            mode, none in ``"learned"`` mode. In ``"learned"`` mode given DAGs
+            are only kept as the reference :attr:`expert` (for comparing and
+            drawing), the search does not use them.
+        action_names: names of the actions, in action order (default: the
+            keys of ``expert_dags`` when given, else
+            :data:`~torchrl_causal.schema.ACTION_NAMES` for 8 actions, else
+            ``action_0, action_1, ...``). With ``expert_dags`` they must be its keys.
+
+    Attributes:
+        expert: the expert DAGs in use (``mode="defined"``) or given for
+            reference, ``{action_name: [(source, target), ...]}`` in action
+            order; ``None`` in ``"learned"`` mode without ``expert_dags``.
+        action_names: the action names, in action order.
+
+    Raises:
+        ValueError: a bad option; ``n_actions`` that does not match
+            ``expert_dags`` or ``action_names``; an expert edge naming a node
+            the schema lacks, or going backwards in (or within) a time slice.
 
     Example:
         >>> learner = CausalLearner(mode="defined")
@@ -78,6 +164,16 @@ class CausalLearner:
         True
         >>> learner.relearn().known.any().item()
         False
+        >>> from torchrl_causal.schema import Variable, VariableSchema
+        >>> s = VariableSchema((Variable("wall", ("free", "blocked")),))
+        >>> mine = CausalLearner(s, 2, mode="defined",
+        ...                      expert_dags={"go": [("wall_t", "reward")], "stay": []})
+        >>> mine.action_names, mine.expert["go"]
+        (['go', 'stay'], [('wall_t', 'reward')])
+        >>> CausalLearner(s, 2, mode="defined", expert_dags={"go": [("wal_t", "reward")], "stay": []})
+        Traceback (most recent call last):
+        ...
+        ValueError: expert_dags['go']: edge ('wal_t', 'reward') names 'wal_t', which is not a node of the schema; nodes: ['wall_t', 'wall_t1', 'reward']
     """
 
     def __init__(
@@ -95,6 +191,8 @@ class CausalLearner:
         warm_start: bool = True,
         max_rows: int | None = None,
         device=None,
+        expert_dags: Mapping[str, Sequence[tuple[str, str]]] | None = None,
+        action_names: Sequence[str] | None = None,
     ):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -105,10 +203,14 @@ class CausalLearner:
             raise ValueError(f"prior must be a positive pseudo count, got {prior!r}")
         if not isinstance(n_actions, int) or n_actions < 1:
             raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
-        if mode == "defined" and n_actions != len(ACTION_NAMES):
-            raise ValueError(
-                f"mode='defined' uses the {len(ACTION_NAMES)} expert CBNs, got n_actions={n_actions}"
-            )
+        if expert_dags is None and mode == "defined":
+            expert_dags = expert_dags_default(schema)
+            if n_actions != len(expert_dags):
+                raise ValueError(
+                    f"mode='defined' uses the {len(expert_dags)} expert CBNs, got n_actions={n_actions}"
+                )
+        expert = None if expert_dags is None else _check_expert(expert_dags, schema, n_actions)
+        names = _action_names(action_names, expert, n_actions)
         self.schema = schema
         self.n_actions = n_actions
         self.mode = mode
@@ -120,13 +222,11 @@ class CausalLearner:
         self.cardinality = cardinality
         self.warm_start = warm_start
         self.device = device
-        self.action_names = (
-            list(ACTION_NAMES) if n_actions == len(ACTION_NAMES) else [f"action_{i}" for i in range(n_actions)]
-        )
+        self.action_names = names
         self.data = TransitionData(n_actions, schema, max_rows=max_rows)
-        self._expert = expert_dags(schema) if mode == "defined" else None
+        self.expert: dict[str, list[tuple[str, str]]] | None = expert
         self._dags: list[list] = [
-            list(self._expert[a]) if self._expert else [] for a in self.action_names
+            list(expert[a]) if mode == "defined" else [] for a in self.action_names
         ]
         self.cbns: list[CBN | None] = [None] * n_actions
         self._tables: RewardTables | None = None
@@ -239,6 +339,7 @@ class CausalLearner:
                 "synchronous": self.synchronous,
                 "max_indegree": self.max_indegree,
                 "cardinality": self.cardinality,
+                "action_names": list(self.action_names),
             },
             "data": self.data.state_dict(),
             "dags": [[list(e) for e in d] for d in self._dags],
@@ -252,6 +353,11 @@ class CausalLearner:
         if sd["options"]["n_actions"] != self.n_actions:
             raise ValueError(
                 f"state dict is for n_actions={sd['options']['n_actions']}, this learner has {self.n_actions}"
+            )
+        names = sd["options"].get("action_names")
+        if names is not None and list(names) != list(self.action_names):
+            raise ValueError(
+                f"state dict is for actions {list(names)}, this learner has {self.action_names}"
             )
         self.data.load_state_dict(sd["data"])
         self._dags = [[tuple(e) for e in d] for d in sd["dags"]]
