@@ -1,4 +1,5 @@
-"""MuJoCo drone navigation environment (:class:`DroneNavEnv`), its scene, layouts and control.
+"""MuJoCo drone navigation environment (:class:`DroneNavEnv`), its scene, layouts and control;
+and a small, fast grid world with a known causal structure (:class:`GridNavEnv`).
 
 Names are imported lazily so that importing this package (e.g. by gymnasium's
 registration) stays cheap and free of import cycles with torchrl.
@@ -9,7 +10,11 @@ registration) stays cheap and free of import cycles with torchrl.
 * :mod:`~torchrl_causal.envs.scene` -- :func:`build_model` (MjSpec), :class:`SceneRenderer`.
 * :mod:`~torchrl_causal.envs.control` -- kinematic and physics (cascaded PID) execution.
 * :mod:`~torchrl_causal.envs.rewards` -- the ``"progress"`` (default) and ``"thesis"`` rewards.
-* :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``.
+* :mod:`~torchrl_causal.envs.gridworld` -- :class:`GridNavEnv` (gymnasium, numpy),
+  its schema :data:`GRIDNAV_SCHEMA`, expert CBNs :func:`gridnav_expert_dags` and
+  the TorchRL factory :func:`make_gridnav_env`.
+* :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``
+  and ``torchrl_causal/GridNav-v0``.
 """
 
 from __future__ import annotations
@@ -41,11 +46,19 @@ _LAZY = {
     "DroneNavGymEnv": "gym_registration",
     "register_envs": "gym_registration",
     "GYM_ID": "gym_registration",
+    "GridNavEnv": "gridworld",
+    "GRIDNAV_SCHEMA": "gridworld",
+    "GRIDNAV_ACTIONS": "gridworld",
+    "GRIDNAV_GYM_ID": "gridworld",
+    "DEFAULT_GRIDNAV_OBSTACLES": "gridworld",
+    "gridnav_expert_dags": "gridworld",
+    "make_gridnav_env": "gridworld",
 }
 
 __all__ = sorted(_LAZY)
 
-# Importing this package registers ``torchrl_causal/DroneNav-v0`` with gymnasium
+# Importing this package registers ``torchrl_causal/DroneNav-v0`` and
+# ``torchrl_causal/GridNav-v0`` with gymnasium
 # (cheap: the MuJoCo env is only imported when gymnasium makes one), so
 # ``gym.make("torchrl_causal.envs:torchrl_causal/DroneNav-v0")`` works without
 # any prior import.

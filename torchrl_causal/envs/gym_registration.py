@@ -1,6 +1,7 @@
-"""Gymnasium registration: ``torchrl_causal/DroneNav-v0``.
+"""Gymnasium registration: ``torchrl_causal/DroneNav-v0`` and ``torchrl_causal/GridNav-v0``.
 
-:func:`register_envs` registers :class:`DroneNavGymEnv` (idempotent). It is
+:func:`register_envs` registers :class:`DroneNavGymEnv` and the grid world
+:class:`~torchrl_causal.envs.gridworld.GridNavEnv` (idempotent). It is
 the package's ``gymnasium.envs`` entry point (``pyproject.toml``); gymnasium
 1.x does not load entry points by itself, so call it (or import
 :mod:`torchrl_causal.envs.gym_registration`, which calls it) before
@@ -24,10 +25,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["GYM_ID", "DroneNavGymEnv", "register_envs"]
+__all__ = ["GYM_ID", "GRIDNAV_GYM_ID", "DroneNavGymEnv", "register_envs"]
 
 #: Gymnasium id of the environment.
 GYM_ID = "torchrl_causal/DroneNav-v0"
+#: Gymnasium id of the grid world (same as ``torchrl_causal.envs.gridworld.GRIDNAV_GYM_ID``).
+GRIDNAV_GYM_ID = "torchrl_causal/GridNav-v0"
 
 _FLAGS = ("goal_in_sight", "crashed", "reached", "out_of_bounds")
 
@@ -127,18 +130,31 @@ class DroneNavGymEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Registers :data:`GYM_ID` with gymnasium (idempotent).
+    """Registers :data:`GYM_ID` and :data:`GRIDNAV_GYM_ID` with gymnasium (idempotent).
+
+    Keyword arguments of ``gymnasium.make(GRIDNAV_GYM_ID, ...)`` are
+    :class:`~torchrl_causal.envs.gridworld.GridNavEnv` options; it truncates
+    episodes itself (``max_steps``), so no ``TimeLimit`` is added.
 
     Example:
         >>> import gymnasium as gym
         >>> register_envs(); register_envs()  # safe to call twice
-        >>> GYM_ID in gym.registry
-        True
+        >>> GYM_ID in gym.registry, GRIDNAV_GYM_ID in gym.registry
+        (True, True)
+        >>> env = gym.make(GRIDNAV_GYM_ID, size=5)
+        >>> env.reset(seed=0)[0]["observation"].shape
+        (50,)
     """
     if GYM_ID not in gym.registry:
         gym.register(
             id=GYM_ID,
             entry_point="torchrl_causal.envs.gym_registration:DroneNavGymEnv",
+            max_episode_steps=None,
+        )
+    if GRIDNAV_GYM_ID not in gym.registry:
+        gym.register(
+            id=GRIDNAV_GYM_ID,
+            entry_point="torchrl_causal.envs.gridworld:GridNavEnv",
             max_episode_steps=None,
         )
 
