@@ -359,7 +359,10 @@ def test_learned_mode_finds_the_crash_edges():
     learner.relearn()
     dags = learner.dags()
     for action in GRIDNAV_ACTIONS:
-        assert (f"blocked_{action}_t", "reward") in dags[action], (action, dags[action])
+        # BIC recovers exactly the true reward parents: the blocking wall and the goal's side
+        axis = "goal_row" if action in ("up", "down") else "goal_col"
+        parents = {s for s, t in dags[action] if t == "reward"}
+        assert parents == {f"blocked_{action}_t", f"{axis}_t"}, (action, dags[action])
         # time tiers: nothing points back from reward or t+1 into t
         assert all(s.endswith("_t") or t == "reward" for s, t in dags[action])
     assert learner.first_searched_dags() == dags
