@@ -7,26 +7,26 @@ This module only holds what a training *script* needs around them:
 * :data:`VARIANTS` -- the five paper variants and what each one switches on;
 * :func:`validate_config` -- every bad option is rejected with a
   ``ValueError`` naming it, before anything heavy is built;
-* :func:`prepare_run_dir` -- the run-folder layout (:data:`RUN_LAYOUT`);
-* :class:`EpisodeCSV` -- the per-episode CSV, truncated on resume;
-* :func:`rng_state` / :func:`set_rng_state` and :func:`atomic_save` --
-  checkpoint helpers.
+* :func:`prepare_run_dir` -- the run-folder layout (:data:`RUN_LAYOUT`: the
+  training loop's :data:`~torchrl_causal.training.RUN_FILES` plus the recipe's
+  plots, tables, CBNs and summary).
+
+The training loop itself (Alg. 1, checkpoints, exact resume) is
+:class:`torchrl_causal.training.DQNLoop`.
 """
 
 from __future__ import annotations
 
-import csv
 import os
-import random
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
-import numpy as np
 import torch
 
 from torchrl_causal.envs.rewards import REWARDS  # ``env.reward`` names: the env's own
+from torchrl_causal.training import RUN_FILES
 
 __all__ = [
     "Variant",
@@ -43,10 +43,6 @@ __all__ = [
     "check_writable",
     "gate_mode",
     "prepare_run_dir",
-    "EpisodeCSV",
-    "rng_state",
-    "set_rng_state",
-    "atomic_save",
 ]
 
 
@@ -100,17 +96,12 @@ AUTO_REWARD_SCALE = {"progress": 1.0, "thesis": 0.01}
 
 #: Files and folders of a run folder, relative to it.
 RUN_LAYOUT = {
+    **RUN_FILES,  # episodes.csv, eval.csv, relearns.csv, checkpoints/, model.pt
     "config": "config.yaml",
-    "episodes": "episodes.csv",
-    "eval": "eval.csv",
-    "relearns": "relearns.csv",
-    "checkpoint": "checkpoints/last.pt",
-    "buffer": "checkpoints/buffer",  # + _<n>: the replay buffer of checkpoint n
     "logs": "logs",
     "plots": "plots",
     "tables": "tables",
     "cbns": "cbns",
-    "model": "model.pt",
     "summary": "summary.json",
 }
 
@@ -298,81 +289,3 @@ def prepare_run_dir(output_dir: str | os.PathLike) -> dict[str, Path]:
         paths[name].mkdir(parents=True, exist_ok=True)
     paths["checkpoint"].parent.mkdir(parents=True, exist_ok=True)
     return paths
-
-
-class EpisodeCSV:
-    """Append-only CSV with a fixed header, flushed after every row.
-
-    On resume the file is cut back to the rows that existed when the
-    checkpoint was written (:meth:`truncate`), so rows written after the last
-    checkpoint by an interrupted run do not appear twice.
-
-    Args:
-        path: the CSV file.
-        columns: the header.
-    """
-
-    def __init__(self, path: str | os.PathLike, columns: Sequence[str]):
-        self.path = Path(path)
-        self.columns = list(columns)
-        self.n_rows = 0
-        if self.path.exists() and self.path.stat().st_size > 0:
-            with open(self.path, newline="") as f:
-                rows = list(csv.reader(f))
-            if rows and rows[0] != self.columns:
-                raise ValueError(
-                    f"{self.path} has columns {rows[0]}, expected {self.columns}"
-                )
-            self.n_rows = max(len(rows) - 1, 0)
-        else:
-            with open(self.path, "w", newline="") as f:
-                csv.writer(f).writerow(self.columns)
-
-    def truncate(self, n_rows: int) -> None:
-        """Keeps the header and the first ``n_rows`` rows."""
-        with open(self.path, newline="") as f:
-            rows = list(csv.reader(f))
-        with open(self.path, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(self.columns)
-            w.writerows(rows[1 : n_rows + 1])
-        self.n_rows = min(n_rows, max(len(rows) - 1, 0))
-
-    def write(self, row: Mapping[str, Any]) -> None:
-        with open(self.path, "a", newline="") as f:
-            csv.writer(f).writerow([_fmt(row.get(c, "")) for c in self.columns])
-        self.n_rows += 1
-
-
-def _fmt(x: Any) -> Any:
-    if isinstance(x, torch.Tensor):
-        x = x.item()
-    if isinstance(x, (bool, np.bool_)):
-        return int(x)
-    if isinstance(x, float):
-        return f"{x:.6g}"
-    return x
-
-
-def rng_state() -> dict:
-    """The global RNG states of Python, NumPy and torch."""
-    return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-    }
-
-
-def set_rng_state(state: Mapping) -> None:
-    """Restores what :func:`rng_state` returned."""
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-
-
-def atomic_save(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save`` to a temporary file, then rename: a kill never leaves half a file."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)

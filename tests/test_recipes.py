@@ -120,33 +120,6 @@ def test_cli_reports_bad_input_and_unknown_variant(tmp_path):
     assert r.returncode != 0 and "cbn_x" in r.stderr
 
 
-def test_episode_csv_truncates_on_resume(tmp_path):
-    path = tmp_path / "episodes.csv"
-    log = ru.EpisodeCSV(path, ["episode", "reward", "success"])
-    for i in range(5):
-        log.write({"episode": i + 1, "reward": float(i) * 1.5, "success": i % 2 == 0})
-    again = ru.EpisodeCSV(path, ["episode", "reward", "success"])
-    assert again.n_rows == 5
-    again.truncate(3)
-    again.write({"episode": 4, "reward": -9.0, "success": False})
-    df = pd.read_csv(path)
-    assert df["episode"].tolist() == [1, 2, 3, 4]
-    assert df["reward"].tolist() == [0.0, 1.5, 3.0, -9.0]
-    assert df["success"].tolist() == [1, 0, 1, 0]
-    with pytest.raises(ValueError, match="columns"):
-        ru.EpisodeCSV(path, ["episode", "other"])
-
-
-def test_rng_state_roundtrip():
-    import torch
-
-    state = ru.rng_state()
-    a = (torch.rand(3), np.random.rand(3))
-    ru.set_rng_state(state)
-    b = (torch.rand(3), np.random.rand(3))
-    assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-
-
 def test_moving_average_and_seed_bands(tmp_path):
     ma = results.moving_average([0, 10, 20, 30], 2)
     np.testing.assert_allclose(ma, [0, 5, 15, 25])

@@ -1,0 +1,141 @@
+"""The training loop as a library part (:mod:`torchrl_causal.training`), tested from the outside."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from torchrl_causal.training import DQNLoop, EpisodeCSV, LoopConfig, rng_state, set_rng_state
+
+ROOT = Path(__file__).resolve().parents[1]
+WORKER = ROOT / "tests" / "kill_resume_worker.py"
+
+
+def test_episode_csv_truncates_on_resume(tmp_path):
+    path = tmp_path / "episodes.csv"
+    log = EpisodeCSV(path, ["episode", "reward", "success"])
+    for i in range(5):
+        log.write({"episode": i + 1, "reward": float(i) * 1.5, "success": i % 2 == 0})
+    again = EpisodeCSV(path, ["episode", "reward", "success"])
+    assert again.n_rows == 5
+    again.truncate(3)
+    again.write({"episode": 4, "reward": -9.0, "success": False})
+    df = pd.read_csv(path)
+    assert df["episode"].tolist() == [1, 2, 3, 4]
+    assert df["reward"].tolist() == [0.0, 1.5, 3.0, -9.0]
+    assert df["success"].tolist() == [1, 0, 1, 0]
+    with pytest.raises(ValueError, match="columns"):
+        EpisodeCSV(path, ["episode", "other"])
+
+
+def test_rng_state_roundtrip():
+    import torch
+
+    state = rng_state()
+    a = (torch.rand(3), np.random.rand(3))
+    set_rng_state(state)
+    b = (torch.rand(3), np.random.rand(3))
+    assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("total_frames", 0, "LoopConfig.total_frames=0"),
+        ("updates_per_frame", -1.0, "LoopConfig.updates_per_frame=-1.0"),
+        ("loss_function", "mse", "LoopConfig.loss_function='mse'"),
+        ("gamma", 1.5, "LoopConfig.gamma=1.5"),
+        ("learning_starts", 5000, "LoopConfig.learning_starts=5000"),
+        ("target_update_interval", 10**6, "LoopConfig.target_update_interval=1000000"),
+        ("eval_max_steps", 0, "LoopConfig.eval_max_steps=0"),
+        ("device", "tpu", "LoopConfig.device='tpu'"),
+    ],
+)
+def test_loop_config_rejects_bad_values(field, value, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(".", r"\.")):
+        LoopConfig(**{"total_frames": 4000, field: value})
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-CUDA message")
+def test_loop_config_rejects_cuda_without_cuda():
+    with pytest.raises(ValueError, match="LoopConfig.device='cuda'.*is_available"):
+        LoopConfig(device="cuda")
+
+
+def test_loop_rejects_continuous_action_spec():
+    from torchrl.envs import GymEnv
+    from torchrl.modules import EGreedyModule
+
+    env = GymEnv("Pendulum-v1")
+    with pytest.raises(ValueError, match="categorical action spec.*Bounded"):
+        DQNLoop(env, torch.nn.Identity(), EGreedyModule(env.action_spec))
+    with pytest.raises(ValueError, match="must be a LoopConfig"):
+        from torchrl.envs import GymEnv as G
+
+        cart = G("CartPole-v1")
+        DQNLoop(cart, torch.nn.Identity(), EGreedyModule(cart.action_spec), config={"a": 1})
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    sys.path.insert(0, str(WORKER.parent))
+    import kill_resume_worker
+
+    loop = kill_resume_worker.build_loop(tmp_path / "run", frames=600)
+    with pytest.raises(ValueError, match="no checkpoint at .*last.pt"):
+        loop.run(resume=True)
+
+
+def _worker(out: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, str(WORKER), str(out), *extra], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 300) -> str:
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, err[-3000:]
+    return out
+
+
+def test_sigkill_at_a_random_moment_then_resume_equals_an_uninterrupted_run(tmp_path):
+    """A run killed with SIGKILL mid-run and resumed ends exactly as a run never killed."""
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    ref = _worker(whole)  # the uninterrupted run, beside the one that gets killed
+    victim = _worker(killed)
+    ckpt = killed / "checkpoints" / "last.pt"
+    deadline = time.monotonic() + 240
+    while not ckpt.exists():
+        assert victim.poll() is None, "the run ended before its first checkpoint"
+        assert time.monotonic() < deadline, "no checkpoint within 240 s"
+        time.sleep(0.05)
+    delay = random.Random(int(time.time())).uniform(0.0, 3.0)  # a random moment
+    time.sleep(delay)
+    assert victim.poll() is None, f"the run finished before the kill ({delay:.2f} s after ckpt 1)"
+    victim.send_signal(signal.SIGKILL)
+    victim.wait(timeout=30)
+    assert victim.returncode == -signal.SIGKILL
+    # what the kill left is a consistent checkpoint: last.pt loads and names its buffer
+    state = torch.load(ckpt, weights_only=False)
+    assert (ckpt.parent / state["buffer_dir"]).is_dir()
+    frames_at_kill = state["loop"]["frames"]
+    assert 0 < frames_at_kill < 1200
+    _finish(_worker(killed, "--resume"))
+    _finish(ref)
+    for name in ("episodes.csv", "eval.csv", "relearns.csv"):
+        a, b = (whole / name).read_text(), (killed / name).read_text()
+        assert a == b, f"{name} differs after a kill at frame >= {frames_at_kill} (+{delay:.2f} s)"
+    assert len(pd.read_csv(whole / "episodes.csv")) > 30
+    ma, mb = torch.load(whole / "model.pt"), torch.load(killed / "model.pt")
+    assert ma.keys() == mb.keys()
+    assert all(torch.equal(ma[k], mb[k]) for k in ma)
+    assert not list((killed / "checkpoints").glob("*.tmp"))

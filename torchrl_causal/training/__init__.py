@@ -1,0 +1,34 @@
+"""Training: thesis Algorithm 1 as a library part, its evaluation and its run records.
+
+* :class:`DQNLoop` / :class:`LoopConfig` -- Alg. 1 for any env, Q-network and
+  schema: collector, replay buffer (+ causal-learning hook), DQN loss, target
+  sync, the gate's epsilon, evaluation, checkpoints and exact resume
+  (:mod:`torchrl_causal.training.loop`).
+* :func:`evaluate` / :func:`seed_transforms` -- greedy evaluation
+  (:mod:`torchrl_causal.training.evaluation`).
+* :class:`EpisodeCSV`, :func:`atomic_save`, :func:`rng_state`,
+  :func:`set_rng_state` -- resumable run records (:mod:`torchrl_causal.training.records`).
+
+Example:
+    >>> from torchrl_causal.training import DQNLoop, LoopConfig
+    >>> LoopConfig(total_frames=4000).target_update_interval
+    250
+"""
+
+from torchrl_causal.training.evaluation import OUTCOME_KEYS, env_max_steps, evaluate, seed_transforms
+from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
+from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
+
+__all__ = [
+    "DQNLoop",
+    "LoopConfig",
+    "RUN_FILES",
+    "evaluate",
+    "seed_transforms",
+    "env_max_steps",
+    "OUTCOME_KEYS",
+    "EpisodeCSV",
+    "atomic_save",
+    "rng_state",
+    "set_rng_state",
+]

@@ -1,0 +1,133 @@
+"""Greedy evaluation of a policy: success rate, reward, collisions, steps to goal.
+
+:func:`evaluate` runs whole episodes with TorchRL's deterministic exploration
+type (epsilon 0; a :class:`~torchrl_causal.modules.CBNGate` still vetoes when
+its ``eval_gate`` is on) and reads the env's outcome flags: ``reached`` (success),
+``crashed`` and ``out_of_bounds`` by default, or any keys you name.
+:func:`seed_transforms` reseeds the transforms that sample (TorchRL's
+``env.set_seed`` does not reach them), so that an evaluation does not depend
+on what ran before it.
+
+Example:
+    >>> import torch
+    >>> from torchrl.envs import GymEnv
+    >>> from torchrl_causal.training import evaluate
+    >>> env = GymEnv("CartPole-v1")
+    >>> policy = lambda td: td.set("action", env.action_spec.rand())
+    >>> res = evaluate(policy, env, episodes=3, seed=0, max_steps=20,
+    ...                outcome_keys={"success": "truncated"})
+    >>> sorted(res)
+    ['collisions', 'mean_length', 'mean_reward', 'out_of_bounds', 'steps_to_goal', 'success_rate']
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+import torch
+
+__all__ = ["evaluate", "seed_transforms", "OUTCOME_KEYS", "env_max_steps"]
+
+#: What each outcome of an episode is read from (``("next", key)`` of its steps).
+OUTCOME_KEYS: dict[str, str] = {
+    "success": "reached",
+    "crash": "crashed",
+    "out_of_bounds": "out_of_bounds",
+}
+
+
+def seed_transforms(env, seed: int) -> None:
+    """Reseeds every transform of ``env`` that has a ``set_seed`` method.
+
+    TorchRL's ``env.set_seed`` seeds the base env only; transforms that draw
+    random numbers (e.g. :class:`~torchrl_causal.transforms.DepthSections`'
+    pixel samples) must restart their streams with it for a resumed run or an
+    evaluation to repeat exactly.
+
+    Args:
+        env: any TorchRL env (a ``TransformedEnv`` or not; batched envs are
+            left to their workers).
+        seed: the seed.
+    """
+    from torchrl.envs import Compose
+
+    transform = getattr(env, "transform", None)
+    transforms = list(transform) if isinstance(transform, Compose) else [transform]
+    for t in transforms:
+        if t is not None and hasattr(t, "set_seed"):
+            t.set_seed(int(seed))
+
+
+def env_max_steps(env, default: int = 1000) -> int:
+    """The episode step limit the base env declares (``max_steps``), else ``default``."""
+    base = getattr(env, "base_env", env)
+    for obj in (base, getattr(base, "_env", None)):
+        steps = getattr(obj, "max_steps", None)
+        if isinstance(steps, int) and steps > 0:
+            return steps
+    return default
+
+
+def _flag(td, key) -> bool:
+    val = td.get(key, None)
+    return bool(val.any()) if val is not None else False
+
+
+@torch.no_grad()
+def evaluate(
+    policy,
+    env,
+    episodes: int,
+    seed: int,
+    *,
+    max_steps: int | None = None,
+    outcome_keys: Mapping[str, str] | None = None,
+) -> dict:
+    """Greedy episodes of ``policy`` on ``env``.
+
+    Args:
+        policy: a TorchRL policy (e.g. ``TensorDictSequential(actor, gate)``).
+        env: the env to run (a single, unbatched env).
+        episodes: the number of episodes (> 0).
+        seed: seeds the env and its sampling transforms first.
+        max_steps: step limit of an episode (default: the env's ``max_steps``,
+            else 1000).
+        outcome_keys: ``{"success" | "crash" | "out_of_bounds": key}`` overrides
+            of :data:`OUTCOME_KEYS`; a key the env does not write counts as False.
+
+    Returns:
+        ``success_rate``, ``mean_reward``, ``collisions``, ``out_of_bounds``,
+        ``mean_length`` and ``steps_to_goal`` (mean length of the successful
+        episodes; NaN when none succeeded).
+
+    Raises:
+        ValueError: ``episodes`` is not a positive int.
+    """
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
+        raise ValueError(f"episodes must be an int > 0, got {episodes!r}")
+    keys = {**OUTCOME_KEYS, **(outcome_keys or {})}
+    steps = max_steps or env_max_steps(env)
+    env.set_seed(int(seed))
+    seed_transforms(env, seed)
+    rewards, successes, crashes, exits, lengths = [], [], [], [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(episodes):
+            td = env.rollout(steps, policy, break_when_any_done=True)
+            nxt = td["next"]
+            rewards.append(float(nxt["reward"].sum()))
+            lengths.append(td.numel())
+            successes.append(_flag(nxt, keys["success"]))
+            crashes.append(_flag(nxt, keys["crash"]))
+            exits.append(_flag(nxt, keys["out_of_bounds"]))
+    to_goal = [n for n, ok in zip(lengths, successes) if ok]
+    return {
+        "success_rate": float(np.mean(successes)),
+        "mean_reward": float(np.mean(rewards)),
+        "collisions": int(np.sum(crashes)),
+        "out_of_bounds": int(np.sum(exits)),
+        "mean_length": float(np.mean(lengths)),
+        "steps_to_goal": float(np.mean(to_goal)) if to_goal else float("nan"),
+    }

@@ -1,0 +1,700 @@
+"""Thesis Algorithm 1: the DQN training loop, with a CBN gate and the causal-learning hook.
+
+:class:`DQNLoop` runs Alg. 1 for any TorchRL env with a categorical action
+spec, any Q-network in a :class:`~torchrl.modules.QValueActor`, and any
+explorer that steps an epsilon (:class:`~torchrl_causal.modules.CBNGate` for
+the causal variants, :class:`~torchrl.modules.EGreedyModule` for the plain
+DQN). Per collected frame it
+
+1. acts: the actor proposes, the explorer (gate) explores, vetoes or replaces
+   (Alg. 3 / 4), and the gate's epsilon is annealed;
+2. stores the transition in a :class:`~torchrl.data.TensorDictReplayBuffer`
+   whose transform (a :class:`~torchrl_causal.data.CausalLearningHook`) feeds
+   the causal learner and relearns the CBNs every ``k`` frames (Alg. 2);
+3. takes ``updates_per_frame`` minibatch steps of :class:`~torchrl.objectives.DQNLoss`
+   and syncs the target network (:class:`~torchrl.objectives.HardUpdate`);
+4. evaluates the greedy policy every ``eval_interval_frames`` and writes a
+   checkpoint every ``checkpoint_interval_frames`` (at an episode end).
+
+What a run folder (``output_dir``) holds: ``episodes.csv`` (reward, length,
+success, crash, epsilon, relearns and the gate's branch shares of every
+training episode), ``eval.csv``, ``relearns.csv``, ``checkpoints/last.pt``
+(+ the replay buffer of that checkpoint) and, at the end, ``model.pt``.
+
+**Exact resume.** ``run(resume=True)`` continues from ``checkpoints/last.pt``
+and produces the same run as an uninterrupted one -- also after a
+``kill -9`` at any moment: checkpoints are written atomically (the buffer to a
+new folder, then ``last.pt`` by rename), the CSVs are cut back to the
+checkpoint's rows, and right after every checkpoint both runs reseed and
+reset the env. This holds with one env and ``hook.background=False``.
+
+Example:
+    A CBN-gated DQN on CartPole, the pole angle and velocity discretised by
+    a schema of your own:
+
+    >>> import tempfile, torch
+    >>> from torchrl.envs import GymEnv, TransformedEnv
+    >>> from torchrl.modules import MLP, QValueActor
+    >>> from torchrl_causal.causal import CausalLearner
+    >>> from torchrl_causal.data import CausalLearningHook
+    >>> from torchrl_causal.modules import CBNGate
+    >>> from torchrl_causal.schema import Variable, VariableSchema
+    >>> from torchrl_causal.training import DQNLoop, LoopConfig
+    >>> from torchrl_causal.transforms import Discretize
+    >>> schema = VariableSchema((
+    ...     Variable("angle", ("left", "upright", "right"), bins=(-0.05, 0.05),
+    ...              source="observation", index=2),
+    ...     Variable("spin", ("left", "still", "right"), bins=(-0.3, 0.3),
+    ...              source="observation", index=3)))
+    >>> env = TransformedEnv(GymEnv("CartPole-v1"), Discretize(schema=schema))
+    >>> actor = QValueActor(MLP(out_features=2, num_cells=[64]), in_keys=["observation"],
+    ...                     spec=env.action_spec)
+    >>> gate = CBNGate("v2", annealing_num_steps=500, seed=0)
+    >>> hook = CausalLearningHook(CausalLearner(schema, n_actions=2), k=200, gates=[gate])
+    >>> loop = DQNLoop(env, actor, gate, hook=hook, output_dir=tempfile.mkdtemp(),
+    ...                config=LoopConfig(total_frames=600, learning_starts=200,
+    ...                                  target_update_interval=50, eval_interval_frames=0,
+    ...                                  final_eval_episodes=0, seed=0))
+    >>> summary = loop.run()
+    >>> summary["frames"], summary["n_relearns"] >= 2
+    (600, True)
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import random
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from torchrl_causal.training.evaluation import OUTCOME_KEYS, evaluate, seed_transforms
+from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
+
+__all__ = ["DQNLoop", "LoopConfig", "RUN_FILES"]
+
+#: Files and folders of a run folder, relative to it.
+RUN_FILES = {
+    "episodes": "episodes.csv",
+    "eval": "eval.csv",
+    "relearns": "relearns.csv",
+    "checkpoint": "checkpoints/last.pt",
+    "buffer": "checkpoints/buffer",  # + _<n>: the replay buffer of checkpoint n
+    "model": "model.pt",
+}
+LOSS_FUNCTIONS = ("l2", "smooth_l1", "l1")
+_GATE_BRANCHES = ("explored", "consulted", "vetoed", "replaced")
+
+
+@dataclass
+class LoopConfig:
+    """Settings of :class:`DQNLoop` (the defaults are the library's tested ones).
+
+    Args:
+        total_frames: training frames (env steps), an upper bound.
+        total_episodes: stop after this many training episodes (``None``: no limit).
+        frames_per_batch: env steps per collector batch (1: the thesis's DQN).
+        init_random_frames: uniformly random frames collected first (counted in the budget).
+        buffer_size: replay memory, in frames (the default buffer only).
+        batch_size: minibatch size.
+        learning_starts: frames stored before the first gradient step.
+        updates_per_frame: gradient steps per collected frame (the replay ratio, > 0).
+        target_update_interval: gradient steps between hard target-network updates.
+        gamma: discount (the default loss only).
+        loss_function: ``"smooth_l1"`` (Huber), ``"l2"`` (thesis) or ``"l1"`` (the default loss only).
+        double_dqn: Double DQN targets (the default loss only).
+        lr: Adam learning rate (the default optimiser only).
+        max_grad_norm: gradient-norm clip (``None``: no clip).
+        reward_scale: rewards are multiplied by this inside the loss only.
+        eval_interval_frames: frames between greedy evaluations (0: only at the end).
+        eval_episodes: episodes of a periodic evaluation (0: none).
+        final_eval_episodes: episodes per evaluation env after training (0: none).
+        eval_max_steps: step limit of an evaluation episode (``None``: the env's
+            ``max_steps``, else 1000).
+        keep_best: end with the best periodic evaluation's snapshot (ties go to
+            the later one) instead of the last weights.
+        checkpoint_interval_frames: frames between checkpoints, written at the
+            next episode end (0: only at the end).
+        stop_after_frames: stop, as if killed, after the first checkpoint at or
+            past this frame (``None``: run to the end).
+        seed: seeds torch, NumPy, Python, the env, its transforms and the evaluations.
+        device: where the network, the buffer samples and the gate run
+            (the env stays where it is).
+        progress: show a tqdm bar.
+
+    Raises:
+        ValueError: naming the field and its value, for a bad setting.
+
+    Example:
+        >>> LoopConfig(total_frames=5000).updates_per_frame
+        0.5
+        >>> LoopConfig(updates_per_frame=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: Invalid LoopConfig.updates_per_frame=0: expected a number > 0 (gradient steps per frame)
+    """
+
+    total_frames: int = 20_000
+    total_episodes: int | None = None
+    frames_per_batch: int = 1
+    init_random_frames: int = 0
+    buffer_size: int = 20_000
+    batch_size: int = 32
+    learning_starts: int = 1000
+    updates_per_frame: float = 0.5
+    target_update_interval: int = 250
+    gamma: float = 0.95
+    loss_function: str = "smooth_l1"
+    double_dqn: bool = True
+    lr: float = 3e-4
+    max_grad_norm: float | None = 10.0
+    reward_scale: float = 1.0
+    eval_interval_frames: int = 2000
+    eval_episodes: int = 5
+    final_eval_episodes: int = 20
+    eval_max_steps: int | None = None
+    keep_best: bool = True
+    checkpoint_interval_frames: int = 3000
+    stop_after_frames: int | None = None
+    seed: int = 0
+    device: str = "cpu"
+    progress: bool = False
+
+    def __post_init__(self):
+        def bad(name, expected):
+            raise ValueError(
+                f"Invalid LoopConfig.{name}={getattr(self, name)!r}: expected {expected}"
+            )
+
+        def is_int(v):
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        def is_num(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+        for name in ("total_frames", "frames_per_batch", "buffer_size", "batch_size",
+                     "target_update_interval"):
+            if not (is_int(getattr(self, name)) and getattr(self, name) > 0):
+                bad(name, "an int > 0")
+        for name in ("init_random_frames", "learning_starts", "eval_interval_frames",
+                     "eval_episodes", "final_eval_episodes", "checkpoint_interval_frames", "seed"):
+            if not (is_int(getattr(self, name)) and getattr(self, name) >= 0):
+                bad(name, "an int >= 0")
+        for name in ("total_episodes", "stop_after_frames", "eval_max_steps"):
+            v = getattr(self, name)
+            if v is not None and not (is_int(v) and v > 0):
+                bad(name, "None or an int > 0")
+        if not (is_num(self.updates_per_frame) and self.updates_per_frame > 0):
+            bad("updates_per_frame", "a number > 0 (gradient steps per frame)")
+        if not (is_num(self.gamma) and 0 <= self.gamma <= 1):
+            bad("gamma", "a discount in [0, 1]")
+        if not (is_num(self.lr) and self.lr > 0):
+            bad("lr", "a number > 0")
+        if not (is_num(self.reward_scale) and self.reward_scale > 0):
+            bad("reward_scale", "a number > 0")
+        if self.max_grad_norm is not None and not (is_num(self.max_grad_norm)
+                                                   and self.max_grad_norm > 0):
+            bad("max_grad_norm", "None or a number > 0")
+        if self.loss_function not in LOSS_FUNCTIONS:
+            bad("loss_function", f"one of {LOSS_FUNCTIONS}")
+        for name in ("double_dqn", "keep_best", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, "True or False")
+        try:
+            dev = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            bad("device", "'cpu' or 'cuda' (or 'cuda:<index>')")
+        if dev.type not in ("cpu", "cuda"):
+            bad("device", "'cpu' or 'cuda' (or 'cuda:<index>')")
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            bad("device", "'cpu' on this machine (torch.cuda.is_available() is False)")
+        if self.learning_starts >= self.total_frames:
+            bad("learning_starts", f"fewer frames than total_frames={self.total_frames} "
+                "(no gradient step would run)")
+        updates = int((self.total_frames - self.learning_starts) * self.updates_per_frame)
+        if self.target_update_interval > updates:
+            bad("target_update_interval",
+                f"at most the run's {updates} gradient steps ((total_frames - learning_starts) "
+                "x updates_per_frame): the target network would never be updated")
+
+
+class _NoRecords:
+    """Stands in for :class:`EpisodeCSV` when a loop has no run folder."""
+
+    def __init__(self):
+        self.n_rows = 0
+
+    def write(self, row):
+        self.n_rows += 1
+
+    def truncate(self, n_rows):
+        self.n_rows = n_rows
+
+
+class _ForwardTimer:
+    """Wall time spent in a module's forward calls (forward pre/post hooks)."""
+
+    def __init__(self, module):
+        self.seconds = 0.0
+        self._t0 = 0.0
+        self._handles = [
+            module.register_forward_pre_hook(self._pre),
+            module.register_forward_hook(self._post),
+        ]
+
+    def _pre(self, *_):
+        self._t0 = time.perf_counter()
+
+    def _post(self, *_):
+        self.seconds += time.perf_counter() - self._t0
+
+    def remove(self):
+        for h in self._handles:
+            h.remove()
+
+
+def _check_categorical(env) -> int:
+    from torchrl.data import Categorical, OneHot
+
+    spec = env.action_spec
+    if not isinstance(spec, (Categorical, OneHot)):
+        raise ValueError(
+            f"DQNLoop needs an env with a categorical action spec (Categorical or OneHot), "
+            f"got {type(spec).__name__}: {spec}"
+        )
+    return int(spec.space.n)
+
+
+class DQNLoop:
+    """Thesis Algorithm 1 for any env: collect, gate, store, learn CBNs, update, evaluate.
+
+    See the module docs for what each step does, what the run folder holds and
+    why resume is exact.
+
+    Args:
+        env: the training env (TorchRL ``EnvBase``) with a categorical action
+            spec; for a gated run it writes the schema's ``causal_state``
+            (e.g. through :class:`~torchrl_causal.transforms.Discretize`).
+        actor: a :class:`~torchrl.modules.QValueActor` (writes ``action_value``
+            and a greedy ``action``).
+        explorer: the module placed after the actor: a
+            :class:`~torchrl_causal.modules.CBNGate` or an
+            :class:`~torchrl.modules.EGreedyModule` (anything with ``step(n)``).
+        config: a :class:`LoopConfig` (default: ``LoopConfig()``).
+        hook: the :class:`~torchrl_causal.data.CausalLearningHook` that feeds
+            the causal learner (``None`` for a plain DQN). Appended to the
+            replay buffer's transforms.
+        loss: a :class:`~torchrl.objectives.DQNLoss` (default: one built on
+            ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
+        optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``).
+        replay_buffer: a :class:`~torchrl.data.TensorDictReplayBuffer` (default:
+            ``LazyTensorStorage(config.buffer_size)`` on ``config.device``).
+        eval_envs: ``{name: env or zero-argument factory}``; the first is
+            evaluated periodically (and decides ``keep_best``), all of them
+            after training. ``None``: no evaluation.
+        output_dir: the run folder (``None``: nothing is written; no resume).
+        logger: a TorchRL logger (``log_scalar``), optional.
+        store_keys: keys kept in the replay buffer (default: the actor's inputs
+            at ``t`` and ``t+1``, the action, reward, done and terminated flags,
+            and the hook's causal states).
+        outcome_keys: overrides of :data:`~torchrl_causal.training.evaluation.OUTCOME_KEYS`
+            (which ``("next", key)`` means success, crash, out of bounds).
+
+    Raises:
+        ValueError: an env whose action spec is not categorical; a config that is not a
+            :class:`LoopConfig`.
+    """
+
+    def __init__(
+        self,
+        env,
+        actor,
+        explorer,
+        *,
+        config: LoopConfig | None = None,
+        hook=None,
+        loss=None,
+        optimizer: torch.optim.Optimizer | None = None,
+        replay_buffer=None,
+        eval_envs: Mapping[str, Any] | None = None,
+        output_dir: str | Path | None = None,
+        logger=None,
+        store_keys: Sequence | None = None,
+        outcome_keys: Mapping[str, str] | None = None,
+    ):
+        from tensordict.nn import TensorDictSequential
+        from torchrl.objectives import DQNLoss, HardUpdate
+
+        config = LoopConfig() if config is None else config
+        if not isinstance(config, LoopConfig):
+            raise ValueError(f"config must be a LoopConfig, got {type(config).__name__}")
+        self.config = cfg = config
+        self.n_actions = _check_categorical(env)
+        self.env, self.actor, self.explorer, self.hook = env, actor, explorer, hook
+        self.policy = TensorDictSequential(actor, explorer)
+        self.device = torch.device(cfg.device)
+        if loss is None:
+            loss = DQNLoss(actor, loss_function=cfg.loss_function, delay_value=True,
+                           double_dqn=cfg.double_dqn, action_space=env.action_spec)
+            loss.make_value_estimator(gamma=cfg.gamma)
+        self.loss = loss
+        self.optimizer = optimizer or torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+        self.updater = HardUpdate(loss, value_network_update_interval=cfg.target_update_interval)
+        self.output_dir = Path(output_dir).expanduser().resolve() if output_dir else None
+        self.paths = ({k: self.output_dir / v for k, v in RUN_FILES.items()}
+                      if self.output_dir else None)
+        if replay_buffer is None:
+            from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+            replay_buffer = TensorDictReplayBuffer(
+                storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
+                batch_size=cfg.batch_size,
+            )
+        if hook is not None:
+            replay_buffer.append_transform(hook)
+        self.replay_buffer = replay_buffer
+        self.eval_envs = dict(eval_envs or {})
+        self.logger = logger
+        self.outcome_keys = {**OUTCOME_KEYS, **(outcome_keys or {})}
+        self.store_keys = list(store_keys) if store_keys is not None else self._default_keys()
+        prefix = getattr(explorer, "diagnostics_prefix", None)
+        self.gate_keys = [f"{prefix}{b}" for b in _GATE_BRANCHES] if prefix else []
+        self.best: dict | None = None
+        self._collector = None
+        self.state = {
+            "frames": 0, "episodes": 0, "updates": 0, "update_budget": 0.0,
+            "next_eval": cfg.eval_interval_frames or math.inf,
+            "next_ckpt": cfg.checkpoint_interval_frames or math.inf,
+            "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
+            "time_extend": 0.0, "time_train": 0.0, "time_collect": 0.0,
+        }
+        self._episode = self._new_episode()
+
+    # ------------------------------------------------------------------ set-up
+    def _default_keys(self) -> list:
+        keys = []
+        for k in getattr(self.actor, "in_keys", []):
+            keys += [k, ("next", k) if isinstance(k, str) else ("next", *k)]
+        keys += ["action", ("next", "reward"), ("next", "done"), ("next", "terminated")]
+        if self.hook is not None:
+            keys += [self.hook.causal_state_key, self.hook.next_causal_state_key]
+        unique = []
+        for k in keys:
+            if k not in unique:
+                unique.append(k)
+        return unique
+
+    def _new_episode(self) -> dict:
+        return {"reward": 0.0, "length": 0, "gate": {k: 0.0 for k in self.gate_keys}}
+
+    def _records(self):
+        if self.paths is None:
+            return _NoRecords(), _NoRecords(), _NoRecords()
+        self.paths["checkpoint"].parent.mkdir(parents=True, exist_ok=True)
+        gate_cols = [f"gate_frac_{b}" for b in _GATE_BRANCHES] if self.gate_keys else []
+        episodes = EpisodeCSV(
+            self.paths["episodes"],
+            ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
+             "epsilon", "n_relearns"] + gate_cols,
+        )
+        evals = EpisodeCSV(
+            self.paths["eval"],
+            ["frames", "episodes", "layout", "success_rate", "mean_reward", "collisions",
+             "out_of_bounds", "mean_length", "steps_to_goal"],
+        )
+        relearns = EpisodeCSV(self.paths["relearns"], ["relearn", "frames", "episode"])
+        return episodes, evals, relearns
+
+    def _eval_env(self, name):
+        env = self.eval_envs[name]
+        if callable(env) and not hasattr(env, "rollout"):
+            env = self.eval_envs[name] = env()
+        return env
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs (but the replay buffer, saved beside it)."""
+        c = self._collector
+        return {
+            "loop": dict(self.state),
+            "episode": copy.deepcopy(self._episode),
+            "loss": self.loss.state_dict(),
+            "optim": self.optimizer.state_dict(),
+            "updater_counter": self.updater.counter,
+            "explorer": self.explorer.state_dict(),
+            "hook": self.hook.state_dict() if self.hook is not None else None,
+            "collector": ({k: v for k, v in c.state_dict().items()
+                           if k in ("frames", "iter", "traj_pool")} if c is not None else None),
+            "logger": (self.logger.state_dict()
+                       if self.logger is not None and hasattr(self.logger, "state_dict") else None),
+            "rows": {name: rec.n_rows for name, rec in zip(
+                ("episodes", "eval", "relearns"), self._recs)},
+            "rng": rng_state(),
+            "best": self.best,
+            "config": dataclasses.asdict(self.config),
+        }
+
+    def _save_checkpoint(self) -> None:
+        # The buffer goes to a new folder; last.pt (written atomically after it)
+        # names it, and older folders are removed only then: a kill at any point
+        # leaves a consistent last.pt + buffer pair.
+        if self.paths is None:
+            return
+        buffer_dir = self.paths["buffer"].with_name(f"buffer_{self.state['n_ckpt']}")
+        self.replay_buffer.dumps(buffer_dir)
+        atomic_save({**self.state_dict(), "buffer_dir": buffer_dir.name}, self.paths["checkpoint"])
+        for old in self.paths["buffer"].parent.glob("buffer_*"):
+            if old.is_dir() and old.name != buffer_dir.name and old.name != "buffer_storage":
+                shutil.rmtree(old, ignore_errors=True)
+
+    def _load_checkpoint(self) -> None:
+        ckpt = torch.load(self.paths["checkpoint"], weights_only=False)
+        self.state.update(ckpt["loop"])
+        self._episode = ckpt["episode"]
+        self.loss.load_state_dict(ckpt["loss"])
+        self.optimizer.load_state_dict(ckpt["optim"])
+        self.updater.counter = ckpt["updater_counter"]
+        self.explorer.load_state_dict(ckpt["explorer"])
+        self.replay_buffer.loads(self.paths["checkpoint"].parent / ckpt["buffer_dir"])
+        if self.hook is not None:
+            self.hook.load_state_dict(ckpt["hook"])
+        if ckpt["collector"] is not None:
+            self._collector.load_state_dict(ckpt["collector"], strict=False)
+        if self._episode["length"]:  # a final checkpoint may fall mid-episode: dropped
+            self._episode = self._new_episode()
+        for rec, name in zip(self._recs, ("episodes", "eval", "relearns")):
+            rec.truncate(ckpt["rows"][name])
+        if self.logger is not None and ckpt["logger"] is not None and hasattr(
+                self.logger, "load_state_dict"):
+            self.logger.load_state_dict(ckpt["logger"])
+        set_rng_state(ckpt["rng"])
+        self.best = ckpt["best"]
+
+    def _restart_collector(self) -> None:
+        # Checkpoints fall on episode ends. Right after one (in the uninterrupted
+        # run as in the resumed one) the env is reseeded and reset, so both runs
+        # continue from the same state.
+        seed = self.config.seed * 7919 + 104729 * self.state["n_ckpt"]
+        self._collector.set_seed(seed)
+        seed_transforms(self.env, seed)
+        self._collector.reset()
+
+    # ------------------------------------------------------------------ steps
+    def _record_episodes(self, batch, n: int) -> bool:
+        """Running sums -> one ``episodes.csv`` row per finished episode; True if the batch ends one."""
+        st, ep, nxt = self.state, self._episode, batch["next"]
+        done = nxt["done"].reshape(n)
+        rewards = nxt["reward"].reshape(n).tolist()
+        gates = {k: batch[k].reshape(n).float().tolist() for k in self.gate_keys}
+        for i in range(n):
+            ep["reward"] += rewards[i]
+            ep["length"] += 1
+            for k in self.gate_keys:
+                ep["gate"][k] += gates[k][i]
+            if not done[i]:
+                continue
+            st["episodes"] += 1
+            flags = {c: bool(nxt.get(key)[i].any()) if nxt.get(key, None) is not None else False
+                     for c, key in (("success", self.outcome_keys["success"]),
+                                    ("crash", self.outcome_keys["crash"]),
+                                    ("out_of_bounds", self.outcome_keys["out_of_bounds"]))}
+            st["successes"] = (st["successes"] + [int(flags["success"])])[-50:]
+            row = {"episode": st["episodes"], "frames": st["frames"] - (n - 1 - i),
+                   "reward": ep["reward"], "length": ep["length"], **flags,
+                   "epsilon": float(self.explorer.eps), "n_relearns": st["n_relearns"]}
+            for k, b in zip(self.gate_keys, _GATE_BRANCHES):
+                row[f"gate_frac_{b}"] = ep["gate"][k] / ep["length"]
+            self._recs[0].write(row)
+            self._last_reward = ep["reward"]
+            if self.logger is not None:
+                self.logger.log_scalar("train/episode_reward", ep["reward"], step=st["frames"])
+                self.logger.log_scalar("train/success", float(flags["success"]), step=st["frames"])
+            self._episode = ep = self._new_episode()
+        return bool(done[-1])
+
+    def _optimise(self, n: int) -> None:
+        """``updates_per_frame`` minibatch DQN steps per new frame, then target syncs."""
+        cfg, st, rb = self.config, self.state, self.replay_buffer
+        if len(rb) < max(cfg.learning_starts, cfg.batch_size):
+            return
+        st["update_budget"] += n * cfg.updates_per_frame
+        while st["update_budget"] >= 1.0:
+            st["update_budget"] -= 1.0
+            sample = rb.sample(cfg.batch_size).to(self.device)
+            if cfg.reward_scale != 1.0:  # the loss sees scaled rewards; the env's stay as defined
+                sample.set(("next", "reward"), sample.get(("next", "reward")) * cfg.reward_scale)
+            loss_td = self.loss(sample)
+            loss_td["loss"].backward()
+            if cfg.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), cfg.max_grad_norm)
+            self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
+            self.updater.step()
+            st["updates"] += 1
+            if self.logger is not None and st["updates"] % 100 == 0:
+                self.logger.log_scalar("train/loss", float(loss_td["loss"].detach()),
+                                       step=st["frames"])
+
+    def _periodic_eval(self) -> None:
+        cfg, st = self.config, self.state
+        if cfg.eval_episodes == 0 or not self.eval_envs:
+            return
+        st["n_evals"] += 1
+        name = next(iter(self.eval_envs))
+        res = evaluate(self.policy, self._eval_env(name), cfg.eval_episodes,
+                       seed=cfg.seed * 1009 + 31 * st["n_evals"], outcome_keys=self.outcome_keys,
+                       max_steps=cfg.eval_max_steps)
+        self._recs[1].write({"frames": st["frames"], "episodes": st["episodes"], "layout": name,
+                             **res})
+        if self.logger is not None:
+            for key, val in res.items():
+                self.logger.log_scalar(f"eval_{name}/{key}", val, step=st["frames"])
+        # keep_best: higher greedy success wins; ties go to the later policy
+        if cfg.keep_best and (self.best is None
+                              or res["success_rate"] >= self.best["result"]["success_rate"]):
+            self.best = {"frames": st["frames"], "result": res,
+                         "actor": copy.deepcopy(self.actor.state_dict()),
+                         "explorer": copy.deepcopy(self.explorer.state_dict())}
+
+    def final_evaluation(self) -> dict:
+        """``final_eval_episodes`` greedy episodes on every evaluation env: ``{name: result}``."""
+        cfg, out = self.config, {}
+        if cfg.final_eval_episodes == 0:
+            return out
+        for i, name in enumerate(self.eval_envs):
+            out[name] = evaluate(self.policy, self._eval_env(name), cfg.final_eval_episodes,
+                                 seed=10_000_019 + cfg.seed * 1009 + i,
+                                 outcome_keys=self.outcome_keys, max_steps=cfg.eval_max_steps)
+        return out
+
+    # ------------------------------------------------------------------ run
+    def run(self, resume: bool = False) -> dict:
+        """Trains (or, with ``resume=True``, continues from the run folder's checkpoint).
+
+        Returns:
+            The run summary: ``frames``, ``episodes``, ``updates``, ``n_relearns``,
+            ``stopped_early``, timings (``loop_seconds``, ``loop_frames_per_second``,
+            ``optimisation_seconds``, ``collection_seconds``,
+            ``causal_learning_seconds``, ``gating_seconds``) and, when the run
+            finished, ``final_eval`` and ``selected_frames`` (``keep_best``).
+
+        Raises:
+            ValueError: ``resume=True`` without a checkpoint in ``output_dir``.
+        """
+        from torchrl.collectors import Collector
+
+        cfg, st = self.config, self.state
+        if resume and (self.paths is None or not self.paths["checkpoint"].is_file()):
+            where = self.paths["checkpoint"] if self.paths else "nowhere (output_dir=None)"
+            raise ValueError(f"Cannot resume: there is no checkpoint at {where}")
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        random.seed(cfg.seed)
+        self.env.set_seed(cfg.seed)
+        seed_transforms(self.env, cfg.seed)
+        self._collector = collector = Collector(
+            self.env, self.policy, frames_per_batch=cfg.frames_per_batch, total_frames=-1,
+            init_random_frames=cfg.init_random_frames or None, device=self.device,
+            # the policy is feed-forward: the collector must not add env transforms
+            auto_register_policy_transforms=False,
+        )
+        self._recs = self._records()
+        if resume:
+            self._load_checkpoint()
+            self._restart_collector()
+        hook = self.hook
+        pbar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            pbar = tqdm(total=cfg.total_frames, initial=st["frames"], unit="frame",
+                        dynamic_ncols=True, mininterval=1.0)
+        gate_timer = _ForwardTimer(self.explorer) if hook is not None else None
+        causal0 = hook.stats["add_seconds"] + hook.stats["relearn_seconds"] if hook else 0.0
+        frames0, t_start = st["frames"], time.perf_counter()
+        self._last_reward = float("nan")
+        stopped_early = False
+        total_episodes = cfg.total_episodes or math.inf
+        try:
+            t_last = time.perf_counter()
+            for batch in collector:
+                st["time_collect"] += time.perf_counter() - t_last
+                batch = batch.reshape(-1)
+                n = batch.numel()
+                st["frames"] += n
+                self.explorer.step(n)  # the gate's (or egreedy's) epsilon schedule
+                t0 = time.perf_counter()
+                self.replay_buffer.extend(batch.select(*self.store_keys))  # + hook: Alg. 2
+                st["time_extend"] += time.perf_counter() - t0
+                if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
+                    st["n_relearns"] = hook.learner.n_relearns
+                    self._recs[2].write({"relearn": st["n_relearns"], "frames": st["frames"],
+                                         "episode": st["episodes"] + 1})
+                at_episode_end = self._record_episodes(batch, n)
+                t0 = time.perf_counter()
+                self._optimise(n)
+                st["time_train"] += time.perf_counter() - t0
+                if pbar is not None:
+                    pbar.update(n)
+                    sr = np.mean(st["successes"]) if st["successes"] else float("nan")
+                    pbar.set_postfix(ep=st["episodes"], reward=f"{self._last_reward:.1f}",
+                                     success=f"{sr:.2f}", eps=f"{float(self.explorer.eps):.2f}",
+                                     refresh=False)
+                finished = st["frames"] >= cfg.total_frames or st["episodes"] >= total_episodes
+                if st["frames"] >= st["next_eval"] or finished:
+                    self._periodic_eval()
+                    while st["next_eval"] <= st["frames"]:
+                        st["next_eval"] += cfg.eval_interval_frames or math.inf
+                if (st["frames"] >= st["next_ckpt"] and at_episode_end) or finished:
+                    st["n_ckpt"] += 1
+                    while st["next_ckpt"] <= st["frames"]:
+                        st["next_ckpt"] += cfg.checkpoint_interval_frames or math.inf
+                    self._save_checkpoint()
+                    if not finished:
+                        self._restart_collector()
+                    if (cfg.stop_after_frames is not None and not finished
+                            and st["frames"] >= cfg.stop_after_frames):
+                        stopped_early = True
+                        break
+                if finished:
+                    break
+                t_last = time.perf_counter()
+        finally:
+            if pbar is not None:
+                pbar.close()
+            collector.shutdown()
+            if gate_timer is not None:
+                gate_timer.remove()
+        wall = time.perf_counter() - t_start
+        summary = {
+            "frames": st["frames"], "episodes": st["episodes"], "updates": st["updates"],
+            "n_relearns": st["n_relearns"], "stopped_early": stopped_early,
+            "output_dir": str(self.output_dir) if self.output_dir else None,
+            # timings of this session's loop (a resumed run counts its own part)
+            "loop_seconds": wall,
+            "loop_frames_per_second": (st["frames"] - frames0) / wall if wall > 0 else None,
+            "optimisation_seconds": st["time_train"],
+            "collection_seconds": st["time_collect"],  # policy (incl. gate) + env + features
+            "causal_learning_seconds": (hook.stats["add_seconds"] + hook.stats["relearn_seconds"]
+                                        - causal0) if hook is not None else 0.0,
+            "gating_seconds": gate_timer.seconds if gate_timer is not None else 0.0,
+        }
+        if stopped_early:
+            return summary
+        if self.best is not None:  # keep_best: the best periodic evaluation's snapshot
+            self.actor.load_state_dict(self.best["actor"])
+            self.explorer.load_state_dict(self.best["explorer"])
+            summary["selected_frames"] = self.best["frames"]
+        summary["final_eval"] = self.final_evaluation()
+        if self.paths is not None:
+            torch.save(self.actor.state_dict(), self.paths["model"])
+            summary["model"] = str(self.paths["model"])
+        return summary
+
