@@ -131,11 +131,13 @@ class GridNavEnv(gym.Env):
             Every free cell must reach every other, and at least two must be free.
         max_steps: steps before truncation, ``>= 1`` (default 50).
         render_mode: ``None`` or ``"ansi"`` (``render()`` returns the map as text).
+        goal: a fixed goal cell ``(row, col)`` for every episode (default
+            ``None``: drawn at every reset); a ``"goal"`` reset option overrides it.
 
     Raises:
         ValueError: naming the value, for a bad size, ``max_steps``,
             obstacle outside the grid, a map whose free cells are not all
-            connected, or (at :meth:`reset`) a ``start`` / ``goal`` option on a
+            connected, a ``goal`` on a wall or off the grid, or (at :meth:`reset`) a ``start`` / ``goal`` option on a
             wall, off the grid, or both on the same cell.
 
     :meth:`reset` accepts ``options={"start": (r, c), "goal": (r, c)}`` to
@@ -164,6 +166,7 @@ class GridNavEnv(gym.Env):
         obstacles: Iterable[tuple[int, int]] | None = None,
         max_steps: int = 50,
         render_mode: str | None = None,
+        goal: tuple[int, int] | None = None,
     ):
         if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
             raise ValueError(f"size must be an int >= 2, got {size!r}")
@@ -190,6 +193,9 @@ class GridNavEnv(gym.Env):
                 f"obstacles {given!r} leave {len(self.free_cells)} free cell(s) of the "
                 f"{size}x{size} grid; need at least 2 (a start and a goal)"
             )
+        self.fixed_goal = None if goal is None else _cell(goal, "goal", size)
+        if self.fixed_goal is not None and walls[self.fixed_goal]:
+            raise ValueError(f"goal {goal!r} is an obstacle cell")
         first = tuple(int(v) for v in self.free_cells[0])
         dist = self._bfs(first)
         unreached = np.argwhere(~walls & (dist < 0))
@@ -308,6 +314,8 @@ class GridNavEnv(gym.Env):
         super().reset(seed=seed)
         options = options or {}
         start, goal = self._placed(options, "start"), self._placed(options, "goal")
+        if goal is None and self.fixed_goal is not None:
+            goal = tuple(int(v) for v in self.fixed_goal)
         if start is not None and start == goal:
             raise ValueError(f"start {options['start']!r} and goal {options['goal']!r} are the same cell")
         free = [tuple(int(v) for v in c) for c in self.free_cells]
@@ -484,7 +492,7 @@ def make_gridnav_env(seed: int | None = 0, device="cpu", **kwargs):
     Args:
         seed: seed of the env (``None``: leave unseeded).
         device: device of the TorchRL env.
-        **kwargs: :class:`GridNavEnv` options (``size``, ``obstacles``, ``max_steps``).
+        **kwargs: :class:`GridNavEnv` options (``size``, ``obstacles``, ``max_steps``, ``goal``).
 
     Returns:
         a :class:`~torchrl.envs.TransformedEnv`.
