@@ -361,6 +361,7 @@ SUBPACKAGES = (
     "torchrl_causal.causal",
     "torchrl_causal.modules",
     "torchrl_causal.data",
+    "torchrl_causal.training",
 )
 
 

@@ -7,17 +7,6 @@ its ``eval_gate`` is on) and reads the env's outcome flags: ``reached`` (success
 :func:`seed_transforms` reseeds the transforms that sample (TorchRL's
 ``env.set_seed`` does not reach them), so that an evaluation does not depend
 on what ran before it.
-
-Example:
-    >>> import torch
-    >>> from torchrl.envs import GymEnv
-    >>> from torchrl_causal.training import evaluate
-    >>> env = GymEnv("CartPole-v1")
-    >>> policy = lambda td: td.set("action", env.action_spec.rand())
-    >>> res = evaluate(policy, env, episodes=3, seed=0, max_steps=20,
-    ...                outcome_keys={"success": "truncated"})
-    >>> sorted(res)
-    ['collisions', 'mean_length', 'mean_reward', 'out_of_bounds', 'steps_to_goal', 'success_rate']
 """
 
 from __future__ import annotations
@@ -49,6 +38,14 @@ def seed_transforms(env, seed: int) -> None:
         env: any TorchRL env (a ``TransformedEnv`` or not; batched envs are
             left to their workers).
         seed: the seed.
+
+    Example:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl_causal.envs import DroneNavEnv
+        >>> from torchrl_causal.transforms import make_causal_transforms
+        >>> base = DroneNavEnv(image_size=32)
+        >>> env = TransformedEnv(base, make_causal_transforms(base, seed=0))
+        >>> seed_transforms(env, 3)  # DepthSections restarts its pixel draws
     """
     from torchrl.envs import Compose
 
@@ -60,7 +57,13 @@ def seed_transforms(env, seed: int) -> None:
 
 
 def env_max_steps(env, default: int = 1000) -> int:
-    """The episode step limit the base env declares (``max_steps``), else ``default``."""
+    """The episode step limit the base env declares (``max_steps``), else ``default``.
+
+    Example:
+        >>> from torchrl_causal.envs import make_gridnav_env
+        >>> env_max_steps(make_gridnav_env(max_steps=30))
+        30
+    """
     base = getattr(env, "base_env", env)
     for obj in (base, getattr(base, "_env", None)):
         steps = getattr(obj, "max_steps", None)
@@ -103,6 +106,17 @@ def evaluate(
 
     Raises:
         ValueError: ``episodes`` is not a positive int.
+
+    Example:
+        >>> import torch
+        >>> from torchrl.envs import GymEnv
+        >>> from torchrl_causal.training import evaluate
+        >>> env = GymEnv("CartPole-v1")
+        >>> policy = lambda td: td.set("action", env.action_spec.rand())
+        >>> res = evaluate(policy, env, episodes=3, seed=0, max_steps=20,
+        ...                outcome_keys={"success": "truncated"})
+        >>> sorted(res)
+        ['collisions', 'mean_length', 'mean_reward', 'out_of_bounds', 'steps_to_goal', 'success_rate']
     """
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 

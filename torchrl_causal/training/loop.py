@@ -28,36 +28,7 @@ new folder, then ``last.pt`` by rename), the CSVs are cut back to the
 checkpoint's rows, and right after every checkpoint both runs reseed and
 reset the env. This holds with one env and ``hook.background=False``.
 
-Example:
-    A CBN-gated DQN on CartPole, the pole angle and velocity discretised by
-    a schema of your own:
-
-    >>> import tempfile, torch
-    >>> from torchrl.envs import GymEnv, TransformedEnv
-    >>> from torchrl.modules import MLP, QValueActor
-    >>> from torchrl_causal.causal import CausalLearner
-    >>> from torchrl_causal.data import CausalLearningHook
-    >>> from torchrl_causal.modules import CBNGate
-    >>> from torchrl_causal.schema import Variable, VariableSchema
-    >>> from torchrl_causal.training import DQNLoop, LoopConfig
-    >>> from torchrl_causal.transforms import Discretize
-    >>> schema = VariableSchema((
-    ...     Variable("angle", ("left", "upright", "right"), bins=(-0.05, 0.05),
-    ...              source="observation", index=2),
-    ...     Variable("spin", ("left", "still", "right"), bins=(-0.3, 0.3),
-    ...              source="observation", index=3)))
-    >>> env = TransformedEnv(GymEnv("CartPole-v1"), Discretize(schema=schema))
-    >>> actor = QValueActor(MLP(out_features=2, num_cells=[64]), in_keys=["observation"],
-    ...                     spec=env.action_spec)
-    >>> gate = CBNGate("v2", annealing_num_steps=500, seed=0)
-    >>> hook = CausalLearningHook(CausalLearner(schema, n_actions=2), k=200, gates=[gate])
-    >>> loop = DQNLoop(env, actor, gate, hook=hook, output_dir=tempfile.mkdtemp(),
-    ...                config=LoopConfig(total_frames=600, learning_starts=200,
-    ...                                  target_update_interval=50, eval_interval_frames=0,
-    ...                                  final_eval_episodes=0, seed=0))
-    >>> summary = loop.run()
-    >>> summary["frames"], summary["n_relearns"] >= 2
-    (600, True)
+See :doc:`/training` for a walk-through and :doc:`/tutorial_gridnav` for a measured example.
 """
 
 from __future__ import annotations
@@ -310,6 +281,37 @@ class DQNLoop:
     Raises:
         ValueError: an env whose action spec is not categorical; a config that is not a
             :class:`LoopConfig`.
+
+    Example:
+        A CBN-gated DQN on CartPole, the pole angle and velocity discretised by
+        a schema of your own:
+
+        >>> import tempfile, torch
+        >>> from torchrl.envs import GymEnv, TransformedEnv
+        >>> from torchrl.modules import MLP, QValueActor
+        >>> from torchrl_causal.causal import CausalLearner
+        >>> from torchrl_causal.data import CausalLearningHook
+        >>> from torchrl_causal.modules import CBNGate
+        >>> from torchrl_causal.schema import Variable, VariableSchema
+        >>> from torchrl_causal.training import DQNLoop, LoopConfig
+        >>> from torchrl_causal.transforms import Discretize
+        >>> schema = VariableSchema((
+        ...     Variable("angle", ("left", "upright", "right"), bins=(-0.05, 0.05),
+        ...              source="observation", index=2),
+        ...     Variable("spin", ("left", "still", "right"), bins=(-0.3, 0.3),
+        ...              source="observation", index=3)))
+        >>> env = TransformedEnv(GymEnv("CartPole-v1"), Discretize(schema=schema))
+        >>> actor = QValueActor(MLP(out_features=2, num_cells=[64]), in_keys=["observation"],
+        ...                     spec=env.action_spec)
+        >>> gate = CBNGate("v2", annealing_num_steps=500, seed=0)
+        >>> hook = CausalLearningHook(CausalLearner(schema, n_actions=2), k=200, gates=[gate])
+        >>> loop = DQNLoop(env, actor, gate, hook=hook, output_dir=tempfile.mkdtemp(),
+        ...                config=LoopConfig(total_frames=600, learning_starts=200,
+        ...                                  target_update_interval=50, eval_interval_frames=0,
+        ...                                  final_eval_episodes=0, seed=0))
+        >>> summary = loop.run()
+        >>> summary["frames"], summary["n_relearns"] >= 2
+        (600, True)
     """
 
     def __init__(

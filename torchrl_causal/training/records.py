@@ -101,7 +101,14 @@ def _fmt(x: Any) -> Any:
 
 
 def rng_state() -> dict:
-    """The global RNG states of Python, NumPy and torch."""
+    """The global RNG states of Python, NumPy and torch.
+
+    Example:
+        >>> import torch
+        >>> state = rng_state(); a = torch.rand(2)
+        >>> set_rng_state(state); torch.equal(a, torch.rand(2))
+        True
+    """
     return {
         "python": random.getstate(),
         "numpy": np.random.get_state(),
@@ -110,14 +117,29 @@ def rng_state() -> dict:
 
 
 def set_rng_state(state: Mapping) -> None:
-    """Restores what :func:`rng_state` returned."""
+    """Restores what :func:`rng_state` returned.
+
+    Example:
+        >>> import numpy as np
+        >>> state = rng_state(); a = np.random.rand()
+        >>> set_rng_state(state); a == np.random.rand()
+        True
+    """
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     torch.set_rng_state(state["torch"])
 
 
 def atomic_save(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save`` to a temporary file, fsync, then rename: a kill never leaves half a file."""
+    """``torch.save`` to a temporary file, fsync, then rename: a kill never leaves half a file.
+
+    Example:
+        >>> import tempfile, torch
+        >>> from pathlib import Path
+        >>> path = Path(tempfile.mkdtemp()) / "last.pt"
+        >>> atomic_save({"step": 3}, path); torch.load(path)["step"], path.with_suffix(".pt.tmp").exists()
+        (3, False)
+    """
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "wb") as f:
