@@ -26,7 +26,10 @@ and produces the same run as an uninterrupted one -- also after a
 ``kill -9`` at any moment: checkpoints are written atomically (the buffer to a
 new folder, then ``last.pt`` by rename), the CSVs are cut back to the
 checkpoint's rows, and right after every checkpoint both runs reseed and
-reset the env. This holds with one env and ``hook.background=False``.
+reset the env. This holds with ``hook.background=False``; with a batched env
+(``SerialEnv`` / ``ParallelEnv``, ``batch_size=(num_envs,)``) checkpoints
+come at batch ends and cut the episodes in flight, in the uninterrupted run as
+in the resumed one.
 
 See :doc:`/training` for a walk-through and :doc:`/tutorial_gridnav` for a measured example.
 """
@@ -243,6 +246,13 @@ def _check_categorical(env) -> int:
     return int(spec.space.n)
 
 
+def _num_envs(env) -> int:
+    shape = tuple(env.batch_size)
+    if len(shape) > 1:
+        raise ValueError(f"DQNLoop takes an env with batch_size () or (num_envs,), got {shape}")
+    return shape[0] if shape else 1
+
+
 class DQNLoop:
     """Thesis Algorithm 1 for any env: collect, gate, store, learn CBNs, update, evaluate.
 
@@ -339,6 +349,7 @@ class DQNLoop:
             raise ValueError(f"config must be a LoopConfig, got {type(config).__name__}")
         self.config = cfg = config
         self.n_actions = _check_categorical(env)
+        self.num_envs = _num_envs(env)
         self.env, self.actor, self.explorer, self.hook = env, actor, explorer, hook
         self.policy = TensorDictSequential(actor, explorer)
         self.device = torch.device(cfg.device)
@@ -377,7 +388,7 @@ class DQNLoop:
             "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
             "time_extend": 0.0, "time_train": 0.0, "time_collect": 0.0,
         }
-        self._episode = self._new_episode()
+        self._episodes = [self._new_episode() for _ in range(self.num_envs)]
 
     # ------------------------------------------------------------------ set-up
     def _default_keys(self) -> list:
@@ -426,7 +437,7 @@ class DQNLoop:
         c = self._collector
         return {
             "loop": dict(self.state),
-            "episode": copy.deepcopy(self._episode),
+            "episodes": copy.deepcopy(self._episodes),
             "loss": self.loss.state_dict(),
             "optim": self.optimizer.state_dict(),
             "updater_counter": self.updater.counter,
@@ -459,7 +470,7 @@ class DQNLoop:
     def _load_checkpoint(self) -> None:
         ckpt = torch.load(self.paths["checkpoint"], weights_only=False)
         self.state.update(ckpt["loop"])
-        self._episode = ckpt["episode"]
+        self._episodes = ckpt["episodes"]
         self.loss.load_state_dict(ckpt["loss"])
         self.optimizer.load_state_dict(ckpt["optim"])
         self.updater.counter = ckpt["updater_counter"]
@@ -469,8 +480,9 @@ class DQNLoop:
             self.hook.load_state_dict(ckpt["hook"])
         if ckpt["collector"] is not None:
             self._collector.load_state_dict(ckpt["collector"], strict=False)
-        if self._episode["length"]:  # a final checkpoint may fall mid-episode: dropped
-            self._episode = self._new_episode()
+        # episodes in flight at the checkpoint are dropped: right after a checkpoint
+        # the uninterrupted run resets the envs too (_restart_collector)
+        self._episodes = [self._new_episode() for _ in range(self.num_envs)]
         for rec, name in zip(self._recs, ("episodes", "eval", "relearns")):
             rec.truncate(ckpt["rows"][name])
         if self.logger is not None and ckpt["logger"] is not None and hasattr(
@@ -480,46 +492,57 @@ class DQNLoop:
         self.best = ckpt["best"]
 
     def _restart_collector(self) -> None:
-        # Checkpoints fall on episode ends. Right after one (in the uninterrupted
-        # run as in the resumed one) the env is reseeded and reset, so both runs
-        # continue from the same state.
+        # With one env, checkpoints fall on episode ends. Right after one (in the
+        # uninterrupted run as in the resumed one) the env is reseeded and reset,
+        # so both runs continue from the same state; with several envs the
+        # episodes in flight are cut there, in both runs alike.
+        self._episodes = [self._new_episode() for _ in range(self.num_envs)]
         seed = self.config.seed * 7919 + 104729 * self.state["n_ckpt"]
         self._collector.set_seed(seed)
         seed_transforms(self.env, seed)
         self._collector.reset()
 
     # ------------------------------------------------------------------ steps
-    def _record_episodes(self, batch, n: int) -> bool:
-        """Running sums -> one ``episodes.csv`` row per finished episode; True if the batch ends one."""
-        st, ep, nxt = self.state, self._episode, batch["next"]
-        done = nxt["done"].reshape(n)
-        rewards = nxt["reward"].reshape(n).tolist()
-        gates = {k: batch[k].reshape(n).float().tolist() for k in self.gate_keys}
-        for i in range(n):
-            ep["reward"] += rewards[i]
-            ep["length"] += 1
-            for k in self.gate_keys:
-                ep["gate"][k] += gates[k][i]
-            if not done[i]:
-                continue
-            st["episodes"] += 1
-            flags = {c: bool(nxt.get(key)[i].any()) if nxt.get(key, None) is not None else False
-                     for c, key in (("success", self.outcome_keys["success"]),
-                                    ("crash", self.outcome_keys["crash"]),
-                                    ("out_of_bounds", self.outcome_keys["out_of_bounds"]))}
-            st["successes"] = (st["successes"] + [int(flags["success"])])[-50:]
-            row = {"episode": st["episodes"], "frames": st["frames"] - (n - 1 - i),
-                   "reward": ep["reward"], "length": ep["length"], **flags,
-                   "epsilon": float(self.explorer.eps), "n_relearns": st["n_relearns"]}
-            for k, b in zip(self.gate_keys, _GATE_BRANCHES):
-                row[f"gate_frac_{b}"] = ep["gate"][k] / ep["length"]
-            self._recs[0].write(row)
-            self._last_reward = ep["reward"]
-            if self.logger is not None:
-                self.logger.log_scalar("train/episode_reward", ep["reward"], step=st["frames"])
-                self.logger.log_scalar("train/success", float(flags["success"]), step=st["frames"])
-            self._episode = ep = self._new_episode()
-        return bool(done[-1])
+    def _record_episodes(self, batch) -> bool:
+        """Running sums -> one ``episodes.csv`` row per finished episode.
+
+        ``batch`` is ``[envs, time]``; steps are taken in collection order
+        (time, then env). Returns True when every env's last step ended an episode.
+        """
+        st, nxt = self.state, batch["next"]
+        n_envs, steps = batch.shape
+        frames0 = st["frames"] - n_envs * steps
+        done = nxt["done"].reshape(n_envs, steps).tolist()
+        rewards = nxt["reward"].reshape(n_envs, steps).tolist()
+        gates = {k: batch[k].reshape(n_envs, steps).float().tolist() for k in self.gate_keys}
+        flags = {c: nxt.get(self.outcome_keys[c], None) for c in ("success", "crash", "out_of_bounds")}
+        flags = {c: (v.reshape(n_envs, steps, -1).any(-1).tolist() if v is not None else None)
+                 for c, v in flags.items()}
+        for t in range(steps):
+            for e in range(n_envs):
+                ep = self._episodes[e]
+                ep["reward"] += rewards[e][t]
+                ep["length"] += 1
+                for k in self.gate_keys:
+                    ep["gate"][k] += gates[k][e][t]
+                if not done[e][t]:
+                    continue
+                st["episodes"] += 1
+                outcome = {c: bool(v[e][t]) if v is not None else False for c, v in flags.items()}
+                st["successes"] = (st["successes"] + [int(outcome["success"])])[-50:]
+                row = {"episode": st["episodes"], "frames": frames0 + (t + 1) * n_envs,
+                       "reward": ep["reward"], "length": ep["length"], **outcome,
+                       "epsilon": float(self.explorer.eps), "n_relearns": st["n_relearns"]}
+                for k, b in zip(self.gate_keys, _GATE_BRANCHES):
+                    row[f"gate_frac_{b}"] = ep["gate"][k] / ep["length"]
+                self._recs[0].write(row)
+                self._last_reward = ep["reward"]
+                if self.logger is not None:
+                    self.logger.log_scalar("train/episode_reward", ep["reward"], step=st["frames"])
+                    self.logger.log_scalar("train/success", float(outcome["success"]),
+                                           step=st["frames"])
+                self._episodes[e] = self._new_episode()
+        return all(row[-1] for row in done)
 
     def _optimise(self, n: int) -> None:
         """``updates_per_frame`` minibatch DQN steps per new frame, then target syncs."""
@@ -628,18 +651,18 @@ class DQNLoop:
             t_last = time.perf_counter()
             for batch in collector:
                 st["time_collect"] += time.perf_counter() - t_last
-                batch = batch.reshape(-1)
+                batch = batch.reshape(self.num_envs, -1)  # [envs, time]
                 n = batch.numel()
                 st["frames"] += n
                 self.explorer.step(n)  # the gate's (or egreedy's) epsilon schedule
                 t0 = time.perf_counter()
-                self.replay_buffer.extend(batch.select(*self.store_keys))  # + hook: Alg. 2
+                self.replay_buffer.extend(batch.reshape(-1).select(*self.store_keys))  # + hook: Alg. 2
                 st["time_extend"] += time.perf_counter() - t0
                 if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
                     st["n_relearns"] = hook.learner.n_relearns
                     self._recs[2].write({"relearn": st["n_relearns"], "frames": st["frames"],
                                          "episode": st["episodes"] + 1})
-                at_episode_end = self._record_episodes(batch, n)
+                at_episode_end = self._record_episodes(batch) or self.num_envs > 1
                 t0 = time.perf_counter()
                 self._optimise(n)
                 st["time_train"] += time.perf_counter() - t0
