@@ -180,8 +180,19 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
         _require(isinstance(val, int) and not isinstance(val, bool) and val >= 0,
                  key, val, "an integer >= 0")
     upf = _get(cfg, "loss.updates_per_frame")
-    _require(isinstance(upf, (int, float)) and upf >= 0, "loss.updates_per_frame", upf,
-             "a number >= 0")
+    _require(isinstance(upf, (int, float)) and not isinstance(upf, bool) and upf > 0,
+             "loss.updates_per_frame", upf, "a number > 0 (the replay ratio: gradient steps "
+             "per collected frame)")
+    n_envs = _get(cfg, "env.num_envs", 1)
+    _require(isinstance(n_envs, int) and not isinstance(n_envs, bool) and n_envs >= 1,
+             "env.num_envs", n_envs, "an integer >= 1")
+    fpb = _get(cfg, "collector.frames_per_batch")
+    if isinstance(fpb, int) and fpb > 0:
+        _require(fpb % n_envs == 0, "collector.frames_per_batch", fpb,
+                 f"a multiple of env.num_envs={n_envs} (each batch steps every env alike), "
+                 f"e.g. collector.frames_per_batch={n_envs}")
+    par = _get(cfg, "env.parallel", False)
+    _require(isinstance(par, bool), "env.parallel", par, "true (ParallelEnv) or false (SerialEnv)")
     lr = _get(cfg, "optim.lr")
     _require(isinstance(lr, (int, float)) and lr > 0, "optim.lr", lr, "a number > 0")
     gate_mode = _get(cfg, "gate.mode")

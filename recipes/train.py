@@ -44,15 +44,24 @@ OmegaConf.register_new_resolver("or_else", lambda a, b: a if a else b, replace=T
 
 
 # --------------------------------------------------------------------------- build
-def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str):
-    """DroneNavEnv on ``scene`` (+ the causal feature stack for CBN variants)."""
-    from torchrl.envs import TransformedEnv
+def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str, num_envs: int = 1):
+    """DroneNavEnv on ``scene`` -- ``num_envs`` of them in a ``SerialEnv`` (or a
+    ``ParallelEnv`` with ``env.parallel=true``) -- plus the causal feature stack
+    for CBN variants (applied to the batch)."""
+    import functools
+
+    from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
 
     from torchrl_causal.envs import DroneNavEnv
 
-    env = DroneNavEnv(**ru.SCENES[scene], image_size=cfg.env.image_size,
-                      max_steps=cfg.env.max_steps, reward=cfg.env.reward, seed=cfg.seed,
-                      device=device, **OmegaConf.to_container(cfg.env.options, resolve=True))
+    make = functools.partial(
+        DroneNavEnv, **ru.SCENES[scene], image_size=cfg.env.image_size,
+        max_steps=cfg.env.max_steps, reward=cfg.env.reward, seed=cfg.seed, device=device,
+        **OmegaConf.to_container(cfg.env.options, resolve=True))
+    if num_envs == 1:
+        env = make()
+    else:
+        env = (ParallelEnv if cfg.env.parallel else SerialEnv)(num_envs, make, device=device)
     if variant.features:
         from torchrl_causal.transforms import make_causal_transforms
 
@@ -81,11 +90,11 @@ def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
     net = ThesisQNet(n_actions, n_features=n_features, device=device,
                      image_size=(cfg.env.image_size, cfg.env.image_size))
     in_keys = ["pixels", "causal_state"] if variant.features else ["pixels"]
-    actor = QValueActor(net, in_keys=in_keys, spec=env.action_spec)
+    actor = QValueActor(net, in_keys=in_keys, spec=env.action_spec_unbatched)
     eps = dict(eps_init=cfg.exploration.eps_init, eps_end=cfg.exploration.eps_end,
                annealing_num_steps=cfg.exploration.annealing_frames)
     if variant.causal_mode is None:
-        return actor, EGreedyModule(env.action_spec, **eps), None
+        return actor, EGreedyModule(env.action_spec_unbatched, **eps), None
 
     from torchrl_causal.causal import CausalLearner
     from torchrl_causal.data import CausalLearningHook
@@ -122,7 +131,7 @@ def build_loss(cfg: DictConfig, actor, env):
     from torchrl.objectives import DQNLoss
 
     loss = DQNLoss(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function], delay_value=True,
-                   double_dqn=cfg.loss.double_dqn, action_space=env.action_spec)
+                   double_dqn=cfg.loss.double_dqn, action_space=env.action_spec_unbatched)
     loss.make_value_estimator(gamma=cfg.loss.gamma)
     if cfg.optim.name == "adam":
         optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
@@ -205,7 +214,7 @@ def train(cfg: DictConfig) -> dict:
     random.seed(cfg.seed)
 
     # Alg. 1, l. 1-3: the env, the Q-network, the gate and the causal learner
-    env = build_env(cfg, variant, cfg.env.layout, cfg.device)
+    env = build_env(cfg, variant, cfg.env.layout, cfg.device, num_envs=cfg.env.num_envs)
     actor, explorer, hook = build_agent(cfg, variant, env, cfg.device)
     loss, optim = build_loss(cfg, actor, env)
     # evaluation scenes, built when first used; the first is evaluated periodically

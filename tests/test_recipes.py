@@ -72,6 +72,10 @@ def test_every_variant_config_is_valid(name, tmp_path):
         ("device=tpu", "device='tpu'"),
         ("logger.backend=mlflowx", "logger.backend='mlflowx'"),
         ("checkpoint.resume=true", "checkpoint.resume"),
+        ("env.num_envs=0", "env.num_envs=0"),
+        ("loss.updates_per_frame=0", "loss.updates_per_frame=0"),
+        ("env.num_envs=3", "collector.frames_per_batch=1"),
+        ("env.parallel=maybe", "env.parallel='maybe'"),
     ],
 )
 def test_bad_input_fails_before_training(override, needle, tmp_path):

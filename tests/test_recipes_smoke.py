@@ -98,6 +98,21 @@ def test_variant_runs_end_to_end(variant, tmp_path):
         assert len(list((out / "cbns" / "first").glob("*.png"))) == 8
 
 
+def test_recipe_trains_on_several_envs(tmp_path):
+    """``env.num_envs=2``: two drones in a SerialEnv per collector batch, the
+    feature stack on the batch, every episode of both recorded."""
+    out = tmp_path / "two"
+    _run(["--config-name", "cbn_v2", f"output_dir={out}", *TINY, "env.num_envs=2",
+          "collector.frames_per_batch=2", "env.eval_layouts=[thesis]", "outputs.draw_cbns=false"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 240 and summary["n_relearns"] >= 2
+    eps = pd.read_csv(out / "episodes.csv")
+    assert len(eps) == summary["episodes"] >= 3
+    assert eps["length"].sum() <= 240 and (eps["length"] <= 60).all()
+    ended_early = eps["length"] < 60
+    assert ((eps["success"] + eps["crash"] + eps["out_of_bounds"])[ended_early] == 1).all()
+
+
 def test_resume_continues_exactly(tmp_path):
     """Stop a run after its first checkpoint, resume it, compare with an uninterrupted run."""
     full, cut = tmp_path / "full", tmp_path / "cut"

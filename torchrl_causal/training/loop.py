@@ -237,7 +237,7 @@ class _ForwardTimer:
 def _check_categorical(env) -> int:
     from torchrl.data import Categorical, OneHot
 
-    spec = env.action_spec
+    spec = env.action_spec_unbatched
     if not isinstance(spec, (Categorical, OneHot)):
         raise ValueError(
             f"DQNLoop needs an env with a categorical action spec (Categorical or OneHot), "
@@ -355,7 +355,7 @@ class DQNLoop:
         self.device = torch.device(cfg.device)
         if loss is None:
             loss = DQNLoss(actor, loss_function=cfg.loss_function, delay_value=True,
-                           double_dqn=cfg.double_dqn, action_space=env.action_spec)
+                           double_dqn=cfg.double_dqn, action_space=env.action_spec_unbatched)
             loss.make_value_estimator(gamma=cfg.gamma)
         self.loss = loss
         self.optimizer = optimizer or torch.optim.Adam(loss.parameters(), lr=cfg.lr)
