@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -36,12 +36,17 @@ test: venv
 docs: venv
 	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
 
-# the speed benchmarks (minutes); benchmarks/learning.py trains 25 runs (hours): make bench-learning
+# the speed benchmarks (minutes); the learning benchmarks train many runs:
+# make bench-learning (drone, hours) and make bench-gridnav (grid world, ~20 min)
+LEARNING_BENCHES := benchmarks/learning.py benchmarks/gridnav.py
 bench: venv
-	for b in benchmarks/*.py; do [ $$b = benchmarks/learning.py ] || $(PY) $$b || exit 1; done
+	for b in $(filter-out $(LEARNING_BENCHES),$(wildcard benchmarks/*.py)); do $(PY) $$b || exit 1; done
 
 bench-learning: venv
 	$(PY) benchmarks/learning.py
+
+bench-gridnav: venv
+	$(PY) benchmarks/gridnav.py --plot docs/_static/results/gridnav_success.png
 
 clean:
 	rm -rf $(VENV) docs/_build outputs .pytest_cache

@@ -1,28 +1,32 @@
-"""Training throughput: ``dqn_image`` vs ``cbn_v2`` side by side, and the causal overhead.
+"""Training throughput against this machine's limit, side by side in one run.
 
-Runs ``recipes/train.py``'s :func:`train` four times in this process, with the
-same frames, seed and options (thesis scene, k = 200, one gradient step every 4
-frames, batch 32, no evaluation, no checkpoints), in the order ``dqn_image``,
-``cbn_v2``, ``cbn_v2``, ``dqn_image``, and prints one JSON line (sums over the
-two runs of each variant):
+Prints one JSON object per figure:
 
-* ``fps_dqn_image`` / ``fps_cbn_v2``: frames per second of the training loop
-  (collection + replay buffer + optimisation);
-* ``causal_learning_share``: share of ``cbn_v2``'s loop wall time spent in
-  causal learning (the replay-buffer hook: adding transitions to the learner
-  and relearning every k frames);
-* ``gating_share``: share spent in the CBN gate's forward (it also does the
-  epsilon-greedy draw that ``EGreedyModule`` does for ``dqn_image``);
-* ``causal_overhead_share``: the sum of the two; target <= 0.05;
-* ``optimisation_share_*`` / ``collection_share_*``: where the rest goes
-  (gradient steps; policy + env + feature transforms).
+* ``{"figure": "limit", ...}`` -- the parts of a training frame timed alone, in
+  this run: one env step of the thesis scene (``env_step_ms``, 84x84 RGB-D,
+  kinematic), the causal feature stack on it (``features_ms``), acting -- the
+  thesis Q-network plus the CBN gate -- on 1 and on ``--envs`` observations
+  (``acting_ms_1``, ``acting_ms_N``), and one minibatch DQN update of the thesis
+  network (``update_ms``, batch 32: forward, backward, optimiser step, target
+  sync). A frame cannot cost less than ``env + features + acting / envs +
+  replay_ratio x update``: ``limit_fps`` for each replay ratio and env count;
+* ``{"figure": "fps", ...}`` -- one per variant (``dqn_image``, ``cbn_v2``) x
+  replay ratio (``--ratios``, default 0.25 and 1) x env count (1 and
+  ``--envs``): frames per second of ``recipes/train.py``'s loop
+  (:class:`torchrl_causal.training.DQNLoop`) and ``share_of_limit``
+  (target >= 0.7 at replay ratio 0.25);
+* ``{"figure": "causal_overhead", ...}`` -- over the ``cbn_v2`` runs: the
+  share of loop wall time spent in causal learning (the replay-buffer hook:
+  adding transitions, relearning every k frames) and in the gate's forward
+  (target: together <= 0.03).
 
-The runs are sequential on a shared machine: compare the fps of runs
-measured in the same invocation only.
+Every run uses the same frames, seed and options (thesis scene, k = 200, no
+evaluation, no checkpoints). The machine is shared and noisy: compare figures
+of one invocation only.
 
 Usage::
 
-    python benchmarks/training.py [--frames 1000] [--threads N]
+    python benchmarks/training.py [--frames 1000] [--envs 4] [--ratios 0.25 1] [--threads N]
 """
 
 from __future__ import annotations
@@ -40,76 +44,177 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 import train as recipe  # noqa: E402
 
 
-def run(variant: str, frames: int, out: Path, threads: int | None) -> dict:
+def _cfg(variant: str, overrides: list[str]):
+    with initialize_config_dir(config_dir=recipe.CONFIG_DIR, version_base=None):
+        return compose(config_name=variant, overrides=overrides)
+
+
+def _median_ms(fn, n: int, warmup: int = 5) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times))
+
+
+def measure_limit(n_envs: int, steps: int = 200) -> dict:
+    """Each part of a training frame timed alone (median ms)."""
+    import recipe_utils as ru
+    from tensordict.nn import TensorDictSequential
+    from torchrl.envs.utils import step_mdp
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = _cfg("cbn_v2", [f"output_dir={tmp}"])
+    variant = ru.VARIANTS["cbn_v2"]
+    env = recipe.build_env(cfg, variant, "thesis", "cpu")
+    base = env.base_env
+    rng = np.random.default_rng(0)
+
+    def stepper(e):
+        state = {"td": e.reset()}
+
+        def step():
+            td = state["td"].set("action", torch.tensor(int(rng.integers(8))))
+            out = e.step(td)
+            state["td"] = e.reset() if bool(out["next", "done"]) else step_mdp(out)
+
+        return step
+
+    full_ms = _median_ms(stepper(env), steps)
+    base_ms = _median_ms(stepper(base), steps)
+    actor, gate, hook = recipe.build_agent(cfg, variant, env, "cpu")
+    policy = TensorDictSequential(actor, gate)
+    obs = env.reset()
+    acting = {}
+    for n in sorted({1, n_envs}):
+        batch = obs.expand(n).clone() if n > 1 else obs
+
+        def act(b=batch):
+            with torch.no_grad():
+                policy(b.clone(False))
+
+        acting[n] = _median_ms(act, steps)
+    loss, optim = recipe.build_loss(cfg, actor, env)
+    rollout = env.rollout(40, policy, break_when_any_done=False)
+    sample = rollout[torch.randint(0, 40, (cfg.buffer.batch_size,))]
+    from torchrl.objectives import HardUpdate
+
+    updater = HardUpdate(loss, value_network_update_interval=cfg.loss.target_update_interval)
+
+    def update():
+        out = loss(sample.clone(False))
+        out["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.loss.max_grad_norm)
+        optim.step()
+        optim.zero_grad(set_to_none=True)
+        updater.step()
+
+    update_ms = _median_ms(update, 30)
+    return {"env_step_ms": base_ms, "features_ms": max(full_ms - base_ms, 0.0),
+            "acting_ms": acting, "update_ms": update_ms}
+
+
+def limit_fps(parts: dict, ratio: float, n_envs: int) -> float:
+    """The most frames per second a loop can reach here: nothing but the parts."""
+    ms = (parts["env_step_ms"] + parts["features_ms"] + parts["acting_ms"][n_envs] / n_envs
+          + ratio * parts["update_ms"])
+    return 1000.0 / ms
+
+
+def run(variant: str, frames: int, ratio: float, n_envs: int, out: Path,
+        threads: int | None) -> dict:
     overrides = [
-        f"output_dir={out / variant}",
-        f"collector.total_frames={frames}",
-        "eval.episodes=0",
-        "checkpoint.interval_frames=0",
-        "outputs.draw_cbns=false",
-        "logger.backend=none",
-        "progress=false",
-        "loss.learning_starts=200",
-        f"exploration.annealing_frames={frames}",
+        f"output_dir={out}", f"collector.total_frames={frames}", "eval.episodes=0",
+        "eval.final_episodes=0", "eval.keep_best=false", "checkpoint.interval_frames=0",
+        "outputs.draw_cbns=false", "logger.backend=none", "progress=false",
+        "loss.learning_starts=200", "loss.target_update_interval=50",
+        f"exploration.annealing_frames={frames}", f"loss.updates_per_frame={ratio}",
+        f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs}",
     ]
     if threads:
         overrides.append(f"threads={threads}")
-    with initialize_config_dir(config_dir=recipe.CONFIG_DIR, version_base=None):
-        cfg = compose(config_name=variant, overrides=overrides)
-    return recipe.train(cfg)
+    return recipe.train(_cfg(variant, overrides))
 
 
-def _sum(summaries: list[dict]) -> dict:
-    keys = ("frames", "n_relearns", "loop_seconds", "optimisation_seconds",
-            "collection_seconds", "causal_learning_seconds", "gating_seconds")
-    return {k: sum(s[k] for s in summaries) for k in keys}
-
-
-def main(argv=None) -> dict:
+def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--frames", type=int, default=1000, help="frames per run")
+    p.add_argument("--envs", type=int, default=4, help="env count of the batched runs")
+    p.add_argument("--ratios", type=float, nargs="+", default=[0.25, 1.0],
+                   help="replay ratios (gradient steps per frame)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     args = p.parse_args(argv)
     if args.frames < 400:
-        raise ValueError(f"Invalid option --frames={args.frames}: expected >= 400 (k = 200)")
+        p.error(f"Invalid option --frames={args.frames}: expected >= 400 (k = 200)")
+    if args.envs < 2:
+        p.error(f"Invalid option --envs={args.envs}: expected >= 2 (1 env is always measured)")
+    if any(r <= 0 for r in args.ratios):
+        p.error(f"Invalid option --ratios={args.ratios}: replay ratios must be > 0")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    runs: dict[str, list[dict]] = {"dqn_image": [], "cbn_v2": []}
+    figures = []
+
+    def emit(obj):
+        figures.append(obj)
+        print(json.dumps(obj), flush=True)
+
+    parts = measure_limit(args.envs)
+    env_counts = (1, args.envs)
+    emit({
+        "figure": "limit", "env_step_ms": round(parts["env_step_ms"], 3),
+        "features_ms": round(parts["features_ms"], 3),
+        "acting_ms_1": round(parts["acting_ms"][1], 3),
+        f"acting_ms_{args.envs}": round(parts["acting_ms"][args.envs], 3),
+        "update_ms": round(parts["update_ms"], 3),
+        "limit_fps": {f"ratio_{r}_envs_{n}": round(limit_fps(parts, r, n), 2)
+                      for r in args.ratios for n in env_counts},
+        "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+        "python": platform.python_version(), "torch": torch.__version__,
+    })
+    causal = {"wall": 0.0, "causal": 0.0, "gating": 0.0, "relearns": 0}
     with tempfile.TemporaryDirectory() as tmp:
-        # A B B A order, so a change of machine load hits both variants alike
-        for i, variant in enumerate(("dqn_image", "cbn_v2", "cbn_v2", "dqn_image")):
-            runs[variant].append(run(variant, args.frames, Path(tmp) / str(i), args.threads))
-    dqn, cbn = _sum(runs["dqn_image"]), _sum(runs["cbn_v2"])
-    wall = cbn["loop_seconds"]
-    causal = cbn["causal_learning_seconds"] / wall
-    gating = cbn["gating_seconds"] / wall
-    result = {
-        "benchmark": "training",
-        "frames_per_variant": dqn["frames"],
-        "fps_dqn_image": round(dqn["frames"] / dqn["loop_seconds"], 2),
-        "fps_cbn_v2": round(cbn["frames"] / wall, 2),
-        "cbn_v2_relearns": cbn["n_relearns"],
-        "causal_learning_share": round(causal, 4),
-        "gating_share": round(gating, 4),
-        "causal_overhead_share": round(causal + gating, 4),
-        "target_causal_overhead_share": 0.05,
-        "optimisation_share_dqn_image": round(dqn["optimisation_seconds"] / dqn["loop_seconds"], 4),
-        "optimisation_share_cbn_v2": round(cbn["optimisation_seconds"] / wall, 4),
-        "collection_share_dqn_image": round(dqn["collection_seconds"] / dqn["loop_seconds"], 4),
-        "collection_share_cbn_v2": round(cbn["collection_seconds"] / wall, 4),
-        "threads": torch.get_num_threads(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
+        i = 0
+        for ratio in args.ratios:
+            for n in env_counts:
+                for variant in ("dqn_image", "cbn_v2"):
+                    i += 1
+                    s = run(variant, args.frames, ratio, n, Path(tmp) / str(i), args.threads)
+                    fps = s["frames"] / s["loop_seconds"]
+                    lim = limit_fps(parts, ratio, n)
+                    emit({"figure": "fps", "variant": variant, "replay_ratio": ratio,
+                          "num_envs": n, "frames": s["frames"], "fps": round(fps, 2),
+                          "limit_fps": round(lim, 2), "share_of_limit": round(fps / lim, 3),
+                          "target_share_of_limit": 0.7 if ratio == 0.25 else None,
+                          "optimisation_share": round(s["optimisation_seconds"]
+                                                      / s["loop_seconds"], 3),
+                          "collection_share": round(s["collection_seconds"]
+                                                    / s["loop_seconds"], 3)})
+                    if variant == "cbn_v2":
+                        causal["wall"] += s["loop_seconds"]
+                        causal["causal"] += s["causal_learning_seconds"]
+                        causal["gating"] += s["gating_seconds"]
+                        causal["relearns"] += s["n_relearns"]
+    emit({
+        "figure": "causal_overhead", "runs": len(args.ratios) * len(env_counts),
+        "relearns": causal["relearns"],
+        "causal_learning_share": round(causal["causal"] / causal["wall"], 4),
+        "gating_share": round(causal["gating"] / causal["wall"], 4),
+        "causal_overhead_share": round((causal["causal"] + causal["gating"]) / causal["wall"], 4),
+        "target_causal_overhead_share": 0.03,
         "total_seconds": round(time.perf_counter() - t0, 1),
-    }
-    print(json.dumps(result))
-    return result
+    })
+    return figures
 
 
 if __name__ == "__main__":
