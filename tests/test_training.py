@@ -200,3 +200,15 @@ def test_gate_changes_learning_on_the_grid_world(tmp_path):
     assert np.mean(crash["expert"]) < np.mean(crash["dqn"]) - 0.05, crash
     assert all(e < 0.6 * d for e, d in zip(late["expert"], late["dqn"])), late
     assert all(v > 0.005 for v in veto), veto
+
+
+def test_hook_already_on_the_buffer_is_not_added_twice(tmp_path):
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    base = _gridnav_loop(tmp_path / "a", 600)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(600), transform=base.hook)
+    loop = DQNLoop(base.env, base.actor, base.explorer, hook=base.hook, replay_buffer=rb,
+                   config=base.config)
+    assert sum(t is base.hook for t in loop.replay_buffer._transform) == 1
+    loop = DQNLoop(base.env, base.actor, base.explorer, hook=base.hook, config=base.config)
+    assert sum(t is base.hook for t in loop.replay_buffer._transform) == 1

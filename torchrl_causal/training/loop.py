@@ -271,7 +271,7 @@ class DQNLoop:
         config: a :class:`LoopConfig` (default: ``LoopConfig()``).
         hook: the :class:`~torchrl_causal.data.CausalLearningHook` that feeds
             the causal learner (``None`` for a plain DQN). Appended to the
-            replay buffer's transforms.
+            replay buffer's transforms (unless the buffer already has it).
         loss: a :class:`~torchrl.objectives.DQNLoss` (default: one built on
             ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
         optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``).
@@ -370,8 +370,9 @@ class DQNLoop:
                 storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
                 batch_size=cfg.batch_size,
             )
-        if hook is not None:
-            replay_buffer.append_transform(hook)
+        present = getattr(replay_buffer, "_transform", None) or []
+        if hook is not None and not any(t is hook for t in present):
+            replay_buffer.append_transform(hook)  # once, also when the buffer already has it
         self.replay_buffer = replay_buffer
         self.eval_envs = dict(eval_envs or {})
         self.logger = logger
