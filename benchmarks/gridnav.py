@@ -1,4 +1,4 @@
-"""Does the CBN gate change learning? Five variants on the grid world, many seeds, in minutes.
+"""Does the CBN gate change learning? Five variants and an ablation on the grid world, many seeds, in minutes.
 
 Trains, with :class:`torchrl_causal.training.DQNLoop`, a DQN on
 ``torchrl_causal/GridNav-v0`` (:class:`~torchrl_causal.envs.GridNavEnv`, whose
@@ -9,6 +9,11 @@ causal structure is known) with:
   CPTs fitted from data at every relearn) and the V2 gate (Alg. 4);
 * ``p`` / ``pn`` / ``v2`` -- learned CBNs (Alg. 2) with the gate of Alg. 3
   (P, PN) or Alg. 4 (V2);
+* ``dqn_v2eps`` -- an ablation: no gate, epsilon scaled by ``1 - 0.7``. Once
+  its CBNs know every action, Alg. 4 takes the (vetoed) greedy action with
+  probability 0.7 and only the rest of the time is epsilon-greedy, so its
+  effective epsilon is ``0.3 x epsilon``; this variant has that exploration
+  without any CBN;
 
 for ``--seeds`` seeds each, and prints one JSON object per variant:
 
@@ -26,7 +31,7 @@ for ``--seeds`` seeds each, and prints one JSON object per variant:
 
 Usage::
 
-    python benchmarks/gridnav.py                       # 5 variants x 10 seeds
+    python benchmarks/gridnav.py                       # 6 variants x 10 seeds
     python benchmarks/gridnav.py --variants dqn v2 --seeds 3 --frames 3000
     python benchmarks/gridnav.py --plot docs/_static/results/gridnav_success.png
 """
@@ -44,7 +49,9 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-VARIANTS = ("dqn", "expert", "p", "pn", "v2")
+VARIANTS = ("dqn", "expert", "p", "pn", "v2", "dqn_v2eps")
+#: The V2 gate's consult probability (thesis ProbCausalModel, CBNGate's default).
+PROB_CAUSAL_MODEL = 0.7
 
 
 #: The grid world of the benchmark: the default 7x7 map, the goal in its top-right corner.
@@ -70,12 +77,14 @@ def build_loop(variant: str, seed: int, frames: int, output_dir=None, **override
     n_obs = env.observation_spec["observation"].shape[-1]
     actor = QValueActor(MLP(in_features=n_obs, out_features=4, num_cells=[64, 64]),
                         in_keys=["observation"], spec=env.action_spec)
-    eps = dict(eps_init=1.0, eps_end=0.05, annealing_num_steps=frames // 2)
+    scale = 1.0 - PROB_CAUSAL_MODEL if variant == "dqn_v2eps" else 1.0
+    eps = dict(eps_init=1.0 * scale, eps_end=0.05 * scale, annealing_num_steps=frames // 2)
     hook = None
-    if variant == "dqn":
+    if variant in ("dqn", "dqn_v2eps"):
         explorer = EGreedyModule(env.action_spec, **eps)
     else:
-        explorer = CBNGate("v2" if variant == "expert" else variant, seed=seed, **eps)
+        explorer = CBNGate("v2" if variant == "expert" else variant, seed=seed,
+                           prob_causal_model=PROB_CAUSAL_MODEL, **eps)
         learner = CausalLearner(GRIDNAV_SCHEMA, 4, action_names=GRIDNAV_ACTIONS,
                                 mode="defined" if variant == "expert" else "learned",
                                 expert_dags=gridnav_expert_dags())
