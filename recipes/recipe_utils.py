@@ -40,6 +40,7 @@ __all__ = [
     "LOGGER_BACKENDS",
     "RUN_LAYOUT",
     "validate_config",
+    "resolve_resume",
     "check_writable",
     "gate_mode",
     "prepare_run_dir",
@@ -151,7 +152,8 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     Raises:
         ValueError: for an unknown variant or gate mode, ``causal.k <= 0``,
             probabilities outside [0, 1], non-positive budgets, an unknown
-            logger, ``checkpoint.resume=true`` without a checkpoint, or an
+            logger, ``checkpoint.resume=true`` without a checkpoint (or a
+            value other than true / false / auto), or an
             unwritable output folder. The message names the option and value.
     """
     variant = _get(cfg, "variant")
@@ -246,12 +248,26 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     _require(stop is None or (isinstance(stop, int) and stop > 0),
              "checkpoint.stop_after_frames", stop, "null or an integer > 0")
     out = check_writable(output_dir)
-    if _get(cfg, "checkpoint.resume"):
+    resume = _get(cfg, "checkpoint.resume")
+    _require(isinstance(resume, bool) or resume == "auto", "checkpoint.resume", resume,
+             "true, false or auto (resume when the run folder holds a checkpoint)")
+    if resume is True:
         ckpt = out / RUN_LAYOUT["checkpoint"]
         _require(ckpt.is_file(), "checkpoint.resume", True,
                  f"an existing checkpoint, but {str(ckpt)!r} does not exist "
                  "(point output_dir at the folder of the run to resume)")
     return v
+
+
+def resolve_resume(cfg: Mapping, output_dir: str | os.PathLike) -> bool:
+    """Whether a run resumes: ``checkpoint.resume`` (``true`` / ``false``), or for
+    ``auto`` whether ``output_dir`` holds a checkpoint (``reproduce.py`` sets ``auto``
+    for every job of a grid, so interrupted runs resume and new ones start).
+    """
+    resume = _get(cfg, "checkpoint.resume")
+    if resume == "auto":
+        return (Path(output_dir) / RUN_LAYOUT["checkpoint"]).is_file()
+    return bool(resume)
 
 
 def reward_scale(cfg: Mapping) -> float:

@@ -3,35 +3,61 @@
 Protocol (``--mode full``): the five variants (``dqn_image``, ``cbn_defined``,
 ``cbn_p``, ``cbn_pn``, ``cbn_v2``; k = 200) x ``--seeds`` seeds x 700 episodes
 (thesis Fig. 5.4), and the k sweep 100 / 200 / 400 / 600 of ``cbn_v2``
-(Fig. 5.3; the k = 200 runs are the ``cbn_v2`` runs). Each run is one
-``recipes/train.py`` process writing its own run folder under ``--root``::
+(Fig. 5.3; the k = 200 runs are the ``cbn_v2`` runs). Each run is one job of a
+hydra multirun of ``recipes/train.py`` writing its own run folder under ``--root``::
 
     <root>/variants/<variant>/seed_<s>/      (Fig. 5.4 runs)
     <root>/k_sweep/k_<k>/seed_<s>/           (Fig. 5.3 runs, k != 200)
     <root>/figures/fig5_3_k_sweep.png, fig5_4_variants.png, success_variants.png
     <root>/tables/summary.md, table_5_1_seed_<s>.md
 
+The runs go through a hydra launcher (``--launcher``): ``joblib`` (default;
+``--jobs`` local processes), ``submitit_local`` (submitit's local executor),
+``submitit_slurm`` (a SLURM job array; partition, time limit, GPUs... as
+``hydra.launcher.*`` overrides after ``--``), ``ray`` (``hydra-ray-launcher``;
+a local Ray instance, or a cluster with ``hydra.launcher.ray.init.address=...``)
+or ``basic`` (one after the other, in one process). The joblib and submitit
+plugins are the ``cluster`` extra (``pip install -e '.[cluster]'``), Ray's the
+``ray`` extra. Before launching, a short warm-up run (``--warmup-frames``
+frames of ``cbn_v2`` with the grid's settings) measures the training speed and
+the estimated wall time of the grid is printed (``--no-estimate`` skips it,
+``--estimate-only`` stops after it).
+
 ``--mode reduced`` runs the same grid with a budget this 2-core machine can
 afford (a few minutes per run; see ``--frames``); ``--aggregate-only`` redraws
-figures and tables from existing runs; ``--dry-run`` prints the commands.
-Already finished runs (with a ``summary.json``) are skipped, so an
-interrupted reproduction can simply be started again. Extra hydra overrides
-for every run go after ``--``, e.g. ``-- buffer.size=50000``.
+figures and tables from existing runs; ``--dry-run`` prints the multirun
+commands and the estimate's formula without training.
+Already finished runs (with a ``summary.json``) are not launched again and
+interrupted ones resume from their checkpoint (every job runs with
+``checkpoint.resume=auto``), so an interrupted reproduction can simply be
+started again. Extra hydra overrides for every run, and the launcher's own
+``hydra.launcher.*`` options, go after ``--``, e.g. ``-- buffer.size=50000``.
 
 Example::
 
-    python recipes/reproduce.py --mode reduced --root outputs/reproduce_reduced
+    python recipes/reproduce.py --mode reduced --jobs 2 --root outputs/reproduce_reduced
     python recipes/reproduce.py --mode full --seeds 5 --root outputs/reproduce
+    python recipes/reproduce.py --mode full --launcher submitit_slurm --jobs 40 -- \\
+        hydra.launcher.partition=gpu hydra.launcher.timeout_min=720 \\
+        hydra.launcher.gpus_per_node=1 hydra.launcher.cpus_per_task=4 device=cuda
+    python recipes/reproduce.py --mode full --launcher ray
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import math
 import os
+import re
+import shlex
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -42,6 +68,7 @@ import recipe_utils as ru  # noqa: E402
 import results  # noqa: E402
 
 TRAIN = Path(__file__).resolve().parent / "train.py"
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
 K_SWEEP = (100, 200, 400, 600)
 
 #: Budgets per mode. ``full`` is the thesis's 700 episodes (at most 200 steps each).
@@ -67,37 +94,272 @@ MODES = {
 }
 
 
-def run_plan(root: Path, mode: str, seeds: int, variants, k_values) -> list[tuple[Path, list[str]]]:
-    """``(run_dir, argv)`` for every run of the protocol."""
+class Launcher(NamedTuple):
+    """A ``--launcher`` choice: hydra's ``hydra/launcher`` name and the plugin it needs."""
+
+    hydra_name: str
+    module: str | None  # the plugin's module under hydra_plugins (None: built into hydra)
+    package: str | None  # its PyPI name
+    extra: str | None  # the torchrl_causal extra that installs it
+
+
+#: ``--launcher`` names.
+LAUNCHERS = {
+    "joblib": Launcher("joblib", "hydra_plugins.hydra_joblib_launcher",
+                       "hydra-joblib-launcher", "cluster"),
+    "submitit_local": Launcher("submitit_local", "hydra_plugins.hydra_submitit_launcher",
+                               "hydra-submitit-launcher", "cluster"),
+    "submitit_slurm": Launcher("submitit_slurm", "hydra_plugins.hydra_submitit_launcher",
+                               "hydra-submitit-launcher", "cluster"),
+    "ray": Launcher("ray", "hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher", "ray"),
+    "basic": Launcher("basic", None, None, None),
+}
+#: submitit's local executor kills a job after ``timeout_min`` (60 by default): a week here.
+LOCAL_TIMEOUT_MIN = 7 * 24 * 60
+
+
+class Run(NamedTuple):
+    """One run of the protocol: its folder, its group (``variants`` / ``k_sweep``), the
+    value swept in that group (the variant, or k) and its seed."""
+
+    run_dir: Path
+    group: str
+    value: str | int
+    seed: int
+
+    def argv(self, base: list[str]) -> list[str]:
+        """``recipes/train.py`` arguments that run it alone (``output_dir`` set)."""
+        if self.group == "variants":
+            head = ["--config-name", str(self.value), f"seed={self.seed}"]
+        else:
+            head = ["--config-name", "cbn_v2", f"seed={self.seed}", f"causal.k={self.value}"]
+        return [*head, f"output_dir={self.run_dir}", *base]
+
+
+def run_plan(root: Path, mode: str, seeds: int, variants, k_values) -> list[Run]:
+    """Every run of the protocol."""
     plan = []
-    base = MODES[mode]["overrides"]
     for v in variants:
         for s in range(seeds):
-            d = root / "variants" / v / f"seed_{s}"
-            plan.append((d, ["--config-name", v, f"seed={s}", f"output_dir={d}", *base]))
+            plan.append(Run(root / "variants" / v / f"seed_{s}", "variants", v, s))
     for k in k_values:
         if k == 200:
             continue  # the cbn_v2 runs above
         for s in range(seeds):
-            d = root / "k_sweep" / f"k_{k}" / f"seed_{s}"
-            plan.append((d, ["--config-name", "cbn_v2", f"seed={s}", f"causal.k={k}",
-                             f"output_dir={d}", *base]))
+            plan.append(Run(root / "k_sweep" / f"k_{k}" / f"seed_{s}", "k_sweep", k, s))
     return plan
 
 
-def run_all(plan, extra: list[str], dry_run: bool) -> None:
+def merge_overrides(*groups: list[str]) -> list[str]:
+    """Hydra overrides with one entry per key: a later ``key=value`` replaces an earlier one
+    (so ``-- collector.total_frames=500`` replaces the mode's)."""
+    merged: dict[str, str] = {}
+    for group in groups:
+        for o in group:
+            key = o.split("=", 1)[0].lstrip("+~")
+            merged.pop(key, None)
+            merged[key] = o
+    return list(merged.values())
+
+
+def check_launcher(name: str) -> Launcher:
+    """The :data:`LAUNCHERS` entry of ``--launcher``, its plugin checked to be installed.
+
+    Raises:
+        ValueError: naming ``--launcher`` for an unknown name or a missing plugin.
+    """
+    if name not in LAUNCHERS:
+        raise ValueError(f"Invalid option --launcher={name!r}: expected one of "
+                         f"{sorted(LAUNCHERS)}")
+    launcher = LAUNCHERS[name]
+    if launcher.module is not None and importlib.util.find_spec(launcher.module) is None:
+        raise ValueError(
+            f"Invalid option --launcher={name}: the {launcher.package} plugin is not "
+            f"installed (pip install {launcher.package}, or pip install -e "
+            f"'.[{launcher.extra}]')")
+    return launcher
+
+
+def _hydra_value(text: str) -> str:
+    """``text`` as a hydra override value (quoted unless it is plain)."""
+    if re.fullmatch(r"[\w./-]+", text):
+        return text
+    return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def launcher_overrides(name: str, jobs: int | None) -> list[str]:
+    """``hydra/launcher=...`` and the launcher's parallelism (``--jobs``)."""
+    out = [f"hydra/launcher={LAUNCHERS[name].hydra_name}"]
+    if name == "joblib":
+        out.append(f"hydra.launcher.n_jobs={jobs or 1}")
+    elif name == "submitit_local":
+        out.append(f"hydra.launcher.timeout_min={LOCAL_TIMEOUT_MIN}")
+    elif name == "submitit_slurm" and jobs:
+        out.append(f"hydra.launcher.array_parallelism={jobs}")
+    return out
+
+
+def sweeps(pending: list[Run], launcher: str, jobs: int | None):
+    """The pending runs as multirun grids ``(group, values, seeds)``: runs of a group that
+    miss the same seeds share one grid (every grid is a full product, so nothing finished
+    runs again). submitit's local executor starts every job of a grid at once, so for it
+    grids hold at most ``jobs`` runs."""
+    seeds_of: dict[tuple, list[int]] = {}
+    for r in pending:
+        seeds_of.setdefault((r.group, r.value), []).append(r.seed)
+    grids: dict[tuple, list] = {}
+    for (group, value), seeds in seeds_of.items():
+        grids.setdefault((group, tuple(seeds)), []).append(value)
+    out = [(g, values, list(seeds)) for (g, seeds), values in grids.items()]
+    if launcher != "submitit_local":
+        return out
+    cap = max(1, jobs or 1)
+    chunked = []
+    for g, values, seeds in out:
+        if len(seeds) > cap:
+            for v in values:
+                chunked += [(g, [v], seeds[i:i + cap]) for i in range(0, len(seeds), cap)]
+        else:
+            per = max(1, cap // len(seeds))
+            chunked += [(g, values[i:i + per], seeds) for i in range(0, len(values), per)]
+    return chunked
+
+
+def sweep_command(root: Path, group: str, values, seeds, launch: list[str],
+                  overrides: list[str]) -> list[str]:
+    """The ``recipes/train.py -m`` command of one grid; hydra's sweep folder and
+    sub-folder put every job's run folder at ``<root>/<group>/...`` (``output_dir``
+    stays null)."""
+    if group == "variants":
+        axis, subdir, fixed = "variant", "${variant}/seed_${seed}", []
+    else:
+        axis, subdir, fixed = "causal.k", "k_${causal.k}/seed_${seed}", ["variant=cbn_v2"]
+    grid = [f"{axis}={','.join(map(str, values))}", f"seed={','.join(map(str, seeds))}", *fixed]
+    return [
+        sys.executable, str(TRAIN), "-m", "--config-name", "base", *launch,
+        f"hydra.sweep.dir={_hydra_value(str(root / group))}", f"hydra.sweep.subdir={subdir}",
+        # the grid's own values win over the same keys among the extra overrides
+        *merge_overrides(overrides, ["checkpoint.resume=auto"], grid),
+    ]
+
+
+def job_env() -> dict:
+    """The environment of the multirun process (and, inherited, of its jobs)."""
     env = dict(os.environ)
     env.setdefault("MUJOCO_GL", "egl")
-    for i, (run_dir, argv) in enumerate(plan, 1):
-        cmd = [sys.executable, str(TRAIN), *argv, *extra]
-        if (run_dir / "summary.json").exists():
-            print(f"[{i}/{len(plan)}] done already: {run_dir}")
-            continue
-        if (run_dir / ru.RUN_LAYOUT["checkpoint"]).exists():
-            cmd.append("checkpoint.resume=true")
-        print(f"[{i}/{len(plan)}] {' '.join(cmd)}", flush=True)
+    recipes = str(TRAIN.parent)  # jobs unpickled by submitit / Ray import recipe_utils
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (recipes, env.get("PYTHONPATH")) if p)
+    return env
+
+
+def run_all(plan: list[Run], overrides: list[str], launcher: str = "joblib",
+            jobs: int | None = 1, dry_run: bool = False) -> list[Run]:
+    """Launches the unfinished runs of ``plan`` (one multirun per grid of :func:`sweeps`).
+
+    Returns:
+        The runs still without a ``summary.json`` afterwards (empty when all finished).
+    """
+    pending = []
+    for i, r in enumerate(plan, 1):
+        if (r.run_dir / "summary.json").exists():
+            print(f"[{i}/{len(plan)}] done already: {r.run_dir}")
+        else:
+            state = "resumes" if (r.run_dir / ru.RUN_LAYOUT["checkpoint"]).exists() else "starts"
+            print(f"[{i}/{len(plan)}] {state}: {r.run_dir}")
+            pending.append(r)
+    root = plan[0].run_dir.parents[2] if plan else None
+    launch = launcher_overrides(launcher, jobs)
+    env = job_env()
+    for group, values, seeds in sweeps(pending, launcher, jobs):
+        cmd = sweep_command(root, group, values, seeds, launch, overrides)
+        print(f"{len(values) * len(seeds)} runs via --launcher={launcher}: {shlex.join(cmd)}",
+              flush=True)
         if not dry_run:
-            subprocess.run(cmd, check=True, env=env)
+            subprocess.run(cmd, check=False, env=env)
+    if dry_run:
+        return pending
+    return [r for r in pending if not (r.run_dir / "summary.json").exists()]
+
+
+# --------------------------------------------------------------------------- estimate
+def estimate_wall_time(frames: int, runs: int, jobs: int, fps: float,
+                       overhead_s: float = 0.0) -> float:
+    """Estimated seconds for ``runs`` runs of ``frames`` frames each, ``jobs`` at a time,
+    each training at ``fps`` frames per second after ``overhead_s`` seconds of start-up:
+    ``ceil(runs / jobs) * (frames / fps + overhead_s)``."""
+    if runs < 0 or frames < 0:
+        raise ValueError(f"Invalid estimate input: runs={runs}, frames={frames} (expected >= 0)")
+    if jobs < 1:
+        raise ValueError(f"Invalid option --jobs={jobs}: expected an integer >= 1")
+    if not fps > 0:
+        raise ValueError(f"Invalid estimate input: fps={fps} (expected > 0)")
+    if runs == 0:
+        return 0.0
+    return math.ceil(runs / min(jobs, runs)) * (frames / fps + max(0.0, overhead_s))
+
+
+def format_duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def compose_run_config(overrides: list[str], variant: str = "cbn_v2"):
+    """The run config the grid's overrides give (composed, not run; bad keys fail here)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(version_base=None, config_dir=str(CONFIG_DIR)):
+        return compose("base", [*plain, f"variant={variant}"])
+
+
+def warmup_overrides(cfg, frames: int, out: Path) -> list[str]:
+    """A ``frames``-frame run with the grid run's replay ratio and share of frames before
+    learning starts, no evaluation, checkpoint or drawing."""
+    total = int(cfg.collector.total_frames)
+    starts = min(frames - 1, round(frames * cfg.loss.learning_starts / max(total, 1)))
+    updates = max(1, int((frames - starts) * cfg.loss.updates_per_frame))
+    return [
+        f"collector.total_frames={frames}", "collector.total_episodes=null",
+        f"loss.learning_starts={starts}",
+        f"loss.target_update_interval={min(cfg.loss.target_update_interval, updates)}",
+        f"buffer.size={min(cfg.buffer.size, max(frames, cfg.buffer.batch_size))}",
+        "eval.interval_frames=0", "eval.final_episodes=0", "env.eval_layouts=[thesis]",
+        "checkpoint.interval_frames=0", "checkpoint.resume=false", "checkpoint.stop_after_frames=null",
+        "outputs.draw_cbns=false", "logger.backend=none", "progress=false",
+        f"output_dir={_hydra_value(str(out))}",
+    ]
+
+
+def warmup(overrides: list[str], frames: int = 300, variant: str = "cbn_v2") -> tuple[float, float]:
+    """Trains ``variant`` for ``frames`` frames with the grid's settings in a temporary
+    folder; returns ``(frames per second of the training loop, seconds of start-up and
+    outputs outside it)``."""
+    cfg = compose_run_config(overrides, variant)
+    with tempfile.TemporaryDirectory(prefix="reproduce_warmup_") as tmp:
+        plain = [o for o in overrides if not o.lstrip("+~").startswith("hydra")]
+        cmd = [sys.executable, str(TRAIN), "--config-name", "base", f"variant={variant}",
+               *merge_overrides(plain, warmup_overrides(cfg, frames, Path(tmp) / "run"))]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, env=job_env(), capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"the warm-up run failed ({shlex.join(cmd)}):\n"
+                               f"{proc.stderr[-3000:]}")
+        summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
+    return float(summary["loop_frames_per_second"]), max(0.0, wall - summary["loop_seconds"])
+
+
+def estimate_line(frames: int, runs: int, jobs: int, fps: float, overhead_s: float) -> str:
+    secs = estimate_wall_time(frames, runs, jobs, fps, overhead_s)
+    return (f"Estimated wall time for {runs} runs x {frames} frames on {min(jobs, max(runs, 1))} "
+            f"parallel jobs: {format_duration(secs)} (warm-up: {fps:.1f} frames/s, "
+            f"{overhead_s:.0f} s start-up per run; training frames only, evaluation "
+            f"episodes come on top)")
 
 
 def _tail_mean(x: pd.Series, n: int) -> float:
@@ -216,10 +478,34 @@ def main(argv=None) -> dict:
     p.add_argument("--k", nargs="+", type=int, default=list(K_SWEEP), help="k sweep values")
     p.add_argument("--frames", type=int, default=None,
                    help="override collector.total_frames of every run")
+    p.add_argument("--launcher", default="joblib",
+                   help=f"hydra launcher of the runs: one of {sorted(LAUNCHERS)} "
+                        "(default joblib: local processes)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="runs at a time: local processes (joblib, submitit_local; default 1) "
+                        "or the SLURM array's parallelism (submitit_slurm; default the "
+                        "plugin's 256); Ray schedules by its own CPUs")
+    p.add_argument("--warmup-frames", type=int, default=300,
+                   help="frames of the warm-up run that measures the speed for the estimate")
+    p.add_argument("--no-estimate", action="store_true", help="skip the warm-up and estimate")
+    p.add_argument("--estimate-only", action="store_true",
+                   help="print the estimate and stop before launching")
     p.add_argument("--aggregate-only", action="store_true")
-    p.add_argument("--dry-run", action="store_true")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the multirun commands and the estimate's formula, train nothing")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
     args = p.parse_args(argv)
+    launcher = args.launcher
+    if not args.aggregate_only:
+        check_launcher(launcher)  # unknown name or missing plugin: before any work
+    if args.jobs is not None and args.jobs < 1:
+        raise ValueError(f"Invalid option --jobs={args.jobs}: expected an integer >= 1")
+    if launcher == "basic" and (args.jobs or 1) > 1:
+        raise ValueError(f"Invalid option --jobs={args.jobs}: --launcher=basic runs one job "
+                         "at a time (use --launcher=joblib)")
+    if args.warmup_frames < 10:
+        raise ValueError(f"Invalid option --warmup-frames={args.warmup_frames}: expected an "
+                         "integer >= 10")
     seeds = args.seeds if args.seeds is not None else MODES[args.mode]["seeds"]
     if seeds < 1:
         raise ValueError(f"Invalid option --seeds={seeds}: expected an integer >= 1")
@@ -231,13 +517,41 @@ def main(argv=None) -> dict:
     extra = list(args.overrides)
     if args.frames is not None:
         extra.append(f"collector.total_frames={args.frames}")
+    overrides = merge_overrides(MODES[args.mode]["overrides"], extra)
     if not args.aggregate_only:
-        run_all(run_plan(root, args.mode, seeds, args.variants, args.k), extra, args.dry_run)
-    if args.dry_run:
-        return {}
+        plan = run_plan(root, args.mode, seeds, args.variants, args.k)
+        pending = [r for r in plan if not (r.run_dir / "summary.json").exists()]
+        if pending and not args.no_estimate:
+            cfg = compose_run_config(overrides)  # a bad override fails here, before training
+            frames = int(cfg.collector.total_frames)
+            parallel = args.jobs or (1 if launcher in ("joblib", "submitit_local", "basic")
+                                     else len(pending))
+            if args.dry_run:
+                print(f"Estimated wall time for {len(pending)} runs x {frames} frames on "
+                      f"{min(parallel, len(pending))} parallel jobs: "
+                      f"ceil({len(pending)} / {min(parallel, len(pending))}) x ({frames} / fps "
+                      f"+ start-up s), fps and start-up from a {args.warmup_frames}-frame "
+                      "warm-up run (not run with --dry-run)")
+            else:
+                variant = "cbn_v2" if "cbn_v2" in args.variants else args.variants[0]
+                print(f"Warm-up: {args.warmup_frames} frames of {variant} ...", flush=True)
+                fps, overhead = warmup(overrides, args.warmup_frames, variant)
+                print(estimate_line(frames, len(pending), parallel, fps, overhead), flush=True)
+                if parallel > (os.cpu_count() or 1) and launcher in ("joblib", "submitit_local"):
+                    print(f"Note: {parallel} parallel jobs on {os.cpu_count()} CPU cores share "
+                          "them; each job then trains slower than the warm-up", flush=True)
+        if args.estimate_only:
+            return {}
+        failed = run_all(plan, overrides, launcher, args.jobs, args.dry_run)
+        if args.dry_run:
+            return {}
     out = aggregate(root)
     print(f"Figures: {root / 'figures'}")
     print(f"Tables: {root / 'tables'}")
+    if not args.aggregate_only and failed:
+        raise RuntimeError(
+            f"{len(failed)} run(s) did not finish: {[str(r.run_dir) for r in failed]} (the "
+            "launcher's log is above; run the same command again to resume them)")
     return out
 
 

@@ -28,6 +28,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+# before anything imports mujoco; also for jobs a hydra launcher (joblib, submitit,
+# Ray) starts, which do not run this file as __main__
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 import hydra
 import numpy as np
 import torch
@@ -202,8 +206,9 @@ def train(cfg: DictConfig) -> dict:
 
     out = resolve_output_dir(cfg)
     variant = ru.validate_config(cfg, out)  # every bad option fails here, before any build
+    resume = ru.resolve_resume(cfg, out)  # checkpoint.resume: true | false | auto
     paths = ru.prepare_run_dir(out)
-    if not cfg.checkpoint.resume:
+    if not resume:
         cfg_plain = OmegaConf.to_container(cfg, resolve=False)
         cfg_plain.pop("hydra", None)
         paths["config"].write_text(OmegaConf.to_yaml(OmegaConf.create(cfg_plain)))
@@ -228,7 +233,7 @@ def train(cfg: DictConfig) -> dict:
     )
     # Alg. 1, l. 4-20: collect, gate, store (+ relearn every k), update, sync, evaluate
     summary = {"variant": cfg.variant, "seed": cfg.seed, "k": cfg.causal.k,
-               **loop.run(resume=bool(cfg.checkpoint.resume)),
+               **loop.run(resume=resume),
                "plots_dir": str(paths["plots"])}
     if summary["stopped_early"]:
         print(f"Stopped after {summary['frames']} frames (checkpoint.stop_after_frames); resume "
@@ -300,5 +305,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("MUJOCO_GL", "egl")
     main()

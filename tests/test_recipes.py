@@ -138,11 +138,12 @@ def test_moving_average_and_seed_bands(tmp_path):
 def test_reproduce_plan_covers_protocol(tmp_path):
     plan = reproduce.run_plan(tmp_path, "full", 3, list(ru.VARIANTS), [100, 200, 400, 600])
     assert len(plan) == 5 * 3 + 3 * 3
-    argv = dict(plan)[tmp_path / "variants" / "cbn_pn" / "seed_2"]
+    run = {r.run_dir: r for r in plan}[tmp_path / "variants" / "cbn_pn" / "seed_2"]
+    argv = run.argv(reproduce.MODES["full"]["overrides"])
     assert argv[:3] == ["--config-name", "cbn_pn", "seed=2"]
     assert "collector.total_episodes=700" in argv
-    ks = sorted({a for _, argv in plan for a in argv if a.startswith("causal.k=")})
-    assert ks == ["causal.k=100", "causal.k=400", "causal.k=600"]
+    ks = sorted({r.value for r in plan if r.group == "k_sweep"})
+    assert ks == [100, 400, 600]
     with pytest.raises(ValueError, match="--seeds=0"):
         reproduce.main(["--seeds", "0", "--dry-run", "--root", str(tmp_path)])
 

@@ -1,0 +1,171 @@
+"""``recipes/reproduce.py`` through hydra launchers: a tiny two-run grid through
+submitit's real local executor and through joblib (real training jobs, run folders,
+aggregated figures), finished runs skipped, the launcher errors, the wall-time
+estimate and ``checkpoint.resume=auto``."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import recipe_utils as ru  # noqa: E402
+import reproduce  # noqa: E402
+
+#: ~150 frames per run, one final greedy episode on the thesis scene.
+TINY = [
+    "collector.total_frames=150", "env.max_steps=50", "causal.k=60", "loss.learning_starts=40",
+    "loss.updates_per_frame=0.125", "loss.target_update_interval=10", "buffer.size=200",
+    "buffer.batch_size=8", "exploration.annealing_frames=100", "eval.interval_frames=0",
+    "eval.episodes=1", "eval.final_episodes=1", "env.eval_layouts=[thesis]",
+    "checkpoint.interval_frames=0", "progress=false", "threads=1", "outputs.draw_cbns=false",
+]
+FIGURES = ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_variants.png"]
+
+
+@pytest.fixture(autouse=True)
+def _mujoco_gl(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+
+
+def _check_grid(root: Path, runs: list[Path], out: dict) -> None:
+    for run in runs:
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["frames"] == 150 and Path(summary["output_dir"]) == run
+        assert len(pd.read_csv(run / "episodes.csv")) == summary["episodes"] >= 2
+    assert sorted(Path(f).name for f in out["figures"]) == FIGURES
+    for name in FIGURES:
+        assert (root / "figures" / name).read_bytes()[:4] == b"\x89PNG"
+    assert (root / "tables" / "summary.md").exists()
+
+
+def _needs(module: str):
+    return pytest.mark.skipif(importlib.util.find_spec(module) is None,
+                              reason=f"{module} not installed (pip install -e '.[cluster]')")
+
+
+@_needs("hydra_plugins.hydra_submitit_launcher")
+def test_two_run_grid_through_submitit_local(tmp_path, capsys):
+    root = tmp_path / "grid"
+    args = ["--launcher", "submitit_local", "--jobs", "2", "--variants", "cbn_v2", "--seeds",
+            "2", "--k", "200", "--no-estimate", "--root", str(root), *TINY]
+    out = reproduce.main(args)
+    runs = [root / "variants" / "cbn_v2" / f"seed_{s}" for s in (0, 1)]
+    _check_grid(root, runs, out)
+    assert "2 runs via --launcher=submitit_local" in capsys.readouterr().out
+    assert list((root / "variants" / ".submitit").iterdir())  # submitit's job logs
+    table = (root / "tables" / "summary.md").read_text()
+    assert "| CBN-DQN V2 | 2 |" in table
+    # started again: both runs are finished, nothing is launched
+    reproduce.main(args)
+    printed = capsys.readouterr().out
+    assert printed.count("done already") == 2 and "runs via" not in printed
+
+
+@_needs("hydra_plugins.hydra_joblib_launcher")
+def test_two_run_grid_through_joblib(tmp_path):
+    root = tmp_path / "grid"
+    out = reproduce.main(["--launcher", "joblib", "--jobs", "2", "--variants", "dqn_image",
+                          "--seeds", "1", "--k", "200", "100", "--no-estimate",
+                          "--root", str(root), *TINY])
+    runs = [root / "variants" / "dqn_image" / "seed_0", root / "k_sweep" / "k_100" / "seed_0"]
+    _check_grid(root, runs, out)
+    # the sweep's k wins over TINY's causal.k=60
+    assert json.loads((runs[1] / "summary.json").read_text())["k"] == 100
+
+
+def test_unknown_launcher_is_named_before_any_work(tmp_path):
+    root = tmp_path / "never"
+    with pytest.raises(ValueError, match=r"--launcher='bogus'.*joblib"):
+        reproduce.main(["--launcher", "bogus", "--root", str(root)])
+    assert not root.exists()
+
+
+def test_missing_plugin_is_named_before_any_work(tmp_path):
+    if importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is not None:
+        pytest.skip("hydra-ray-launcher is installed here")
+    root = tmp_path / "never"
+    with pytest.raises(ValueError, match=r"--launcher=ray: the hydra-ray-launcher plugin is "
+                                         r"not installed \(pip install hydra-ray-launcher"):
+        reproduce.main(["--launcher", "ray", "--root", str(root)])
+    assert not root.exists()
+
+
+def test_bad_jobs_are_named(tmp_path):
+    with pytest.raises(ValueError, match=r"--jobs=0"):
+        reproduce.main(["--jobs", "0", "--dry-run", "--root", str(tmp_path)])
+    with pytest.raises(ValueError, match=r"--jobs=2: --launcher=basic"):
+        reproduce.main(["--launcher", "basic", "--jobs", "2", "--dry-run", "--root",
+                        str(tmp_path)])
+
+
+def test_estimate_wall_time():
+    est = reproduce.estimate_wall_time
+    assert est(frames=1000, runs=4, jobs=2, fps=50.0) == pytest.approx(2 * 20.0)
+    assert est(frames=1000, runs=5, jobs=2, fps=50.0, overhead_s=5) == pytest.approx(3 * 25.0)
+    assert est(frames=1000, runs=3, jobs=8, fps=50.0) == pytest.approx(20.0)  # one wave
+    assert est(frames=1000, runs=0, jobs=2, fps=50.0) == 0.0
+    with pytest.raises(ValueError, match="fps"):
+        est(frames=1000, runs=2, jobs=1, fps=0.0)
+    with pytest.raises(ValueError, match="--jobs=0"):
+        est(frames=1000, runs=2, jobs=0, fps=10.0)
+    line = reproduce.estimate_line(20000, 12, 2, 41.2, 8.0)
+    assert line.startswith("Estimated wall time for 12 runs x 20000 frames on 2 parallel "
+                           "jobs: 49.3 min (warm-up: 41.2 frames/s")
+    assert reproduce.format_duration(90) == "90 s"
+    assert reproduce.format_duration(600) == "10.0 min"
+
+
+def test_dry_run_prints_multiruns_and_formula(tmp_path, capsys):
+    assert reproduce.main(["--mode", "reduced", "--jobs", "2", "--dry-run",
+                           "--root", str(tmp_path)]) == {}
+    printed = capsys.readouterr().out
+    assert "Estimated wall time for 16 runs x 2000 frames on 2 parallel jobs: " \
+           "ceil(16 / 2) x (2000 / fps" in printed
+    assert "10 runs via --launcher=joblib" in printed and "6 runs via --launcher=joblib" in printed
+    assert "hydra.launcher.n_jobs=2" in printed and "checkpoint.resume=auto" in printed
+    assert not list(tmp_path.rglob("summary.json"))
+
+
+def test_grids_skip_finished_runs_and_cap_submitit_local(tmp_path):
+    plan = reproduce.run_plan(tmp_path, "reduced", 3, ["cbn_v2", "dqn_image"], [100, 200])
+    done = {(tmp_path / "variants" / "dqn_image" / "seed_1")}
+    pending = [r for r in plan if r.run_dir not in done]
+    grids = reproduce.sweeps(pending, "joblib", 2)
+    assert sorted((g, tuple(v), tuple(s)) for g, v, s in grids) == sorted([
+        ("variants", ("cbn_v2",), (0, 1, 2)), ("variants", ("dqn_image",), (0, 2)),
+        ("k_sweep", (100,), (0, 1, 2))])
+    capped = reproduce.sweeps(pending, "submitit_local", 2)
+    assert all(len(v) * len(s) <= 2 for _, v, s in capped)
+    assert sum(len(v) * len(s) for _, v, s in capped) == len(pending)
+    # a later override replaces the mode's
+    merged = reproduce.merge_overrides(["a.b=1", "c=2"], ["a.b=3"])
+    assert merged == ["c=2", "a.b=3"]
+
+
+def _cfg(name: str, overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(reproduce.CONFIG_DIR), version_base=None):
+        return compose(config_name=name, overrides=overrides)
+
+
+def test_checkpoint_resume_auto(tmp_path):
+    cfg = _cfg("cbn_v2", ["checkpoint.resume=auto"])
+    ru.validate_config(cfg, tmp_path)  # auto without a checkpoint: a fresh start
+    assert ru.resolve_resume(cfg, tmp_path) is False
+    ckpt = tmp_path / ru.RUN_LAYOUT["checkpoint"]
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"x")
+    assert ru.resolve_resume(cfg, tmp_path) is True
+    assert ru.resolve_resume(_cfg("cbn_v2", ["checkpoint.resume=false"]), tmp_path) is False
+    with pytest.raises(ValueError, match="checkpoint.resume='sometimes'"):
+        ru.validate_config(_cfg("cbn_v2", ["checkpoint.resume=sometimes"]), tmp_path)
