@@ -9,7 +9,9 @@ Prints one JSON object per figure:
   (``acting_ms_1``, ``acting_ms_N``), and one minibatch DQN update of the thesis
   network (``update_ms``, batch 32: forward, backward, optimiser step, target
   sync). A frame cannot cost less than ``env + features + acting / envs +
-  replay_ratio x update``: ``limit_fps`` for each replay ratio and env count;
+  replay_ratio x update``: ``limit_fps`` for each replay ratio and env count
+  (a run's own limit uses the gradient steps per frame it took: none before
+  ``loss.learning_starts``);
 * ``{"figure": "fps", ...}`` -- one per variant (``dqn_image``, ``cbn_v2``) x
   replay ratio (``--ratios``, default 0.25 and 1) x env count (1 and
   ``--envs``): frames per second of ``recipes/train.py``'s loop
@@ -125,7 +127,10 @@ def measure_limit(n_envs: int, steps: int = 200) -> dict:
 
 
 def limit_fps(parts: dict, ratio: float, n_envs: int) -> float:
-    """The most frames per second a loop can reach here: nothing but the parts."""
+    """The most frames per second a loop can reach here: nothing but the parts.
+
+    ``ratio`` is the gradient steps per frame actually taken (a run takes none
+    before ``loss.learning_starts``)."""
     ms = (parts["env_step_ms"] + parts["features_ms"] + parts["acting_ms"][n_envs] / n_envs
           + ratio * parts["update_ms"])
     return 1000.0 / ms
@@ -191,9 +196,12 @@ def main(argv=None) -> list[dict]:
                     i += 1
                     s = run(variant, args.frames, ratio, n, Path(tmp) / str(i), args.threads)
                     fps = s["frames"] / s["loop_seconds"]
-                    lim = limit_fps(parts, ratio, n)
+                    # the limit of this run: its own gradient steps per frame (none
+                    # are taken before loss.learning_starts)
+                    lim = limit_fps(parts, s["updates"] / s["frames"], n)
                     emit({"figure": "fps", "variant": variant, "replay_ratio": ratio,
-                          "num_envs": n, "frames": s["frames"], "fps": round(fps, 2),
+                          "num_envs": n, "frames": s["frames"], "updates": s["updates"],
+                          "fps": round(fps, 2),
                           "limit_fps": round(lim, 2), "share_of_limit": round(fps / lim, 3),
                           "target_share_of_limit": 0.7 if ratio == 0.25 else None,
                           "optimisation_share": round(s["optimisation_seconds"]

@@ -166,6 +166,7 @@ def test_batched_envs_train_record_every_episode_and_resume_exactly(tmp_path):
     assert part["stopped_early"] and part["frames"] == 480
     resumed = _gridnav_loop(tmp_path / "part", 900, **opts).run(resume=True)
     assert whole["frames"] == resumed["frames"] == 900
+    assert whole["peak_rss_mb"] > 50  # the process's peak memory is reported
     a = pd.read_csv(tmp_path / "whole" / "episodes.csv")
     b = pd.read_csv(tmp_path / "part" / "episodes.csv")
     pd.testing.assert_frame_equal(a, b)

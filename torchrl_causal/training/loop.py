@@ -246,6 +246,16 @@ def _check_categorical(env) -> int:
     return int(spec.space.n)
 
 
+def _peak_rss_mb() -> float | None:
+    """This process's peak resident memory (MiB), where the OS reports it."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not on Windows
+        return None
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(kb / 1024.0, 1)
+
+
 def _num_envs(env) -> int:
     shape = tuple(env.batch_size)
     if len(shape) > 1:
@@ -608,7 +618,8 @@ class DQNLoop:
             The run summary: ``frames``, ``episodes``, ``updates``, ``n_relearns``,
             ``stopped_early``, timings (``loop_seconds``, ``loop_frames_per_second``,
             ``optimisation_seconds``, ``collection_seconds``,
-            ``causal_learning_seconds``, ``gating_seconds``) and, when the run
+            ``causal_learning_seconds``, ``gating_seconds``), ``peak_rss_mb`` (the
+            process's peak resident memory) and, when the run
             finished, ``final_eval`` and ``selected_frames`` (``keep_best``).
 
         Raises:
@@ -711,6 +722,7 @@ class DQNLoop:
             "causal_learning_seconds": (hook.stats["add_seconds"] + hook.stats["relearn_seconds"]
                                         - causal0) if hook is not None else 0.0,
             "gating_seconds": gate_timer.seconds if gate_timer is not None else 0.0,
+            "peak_rss_mb": _peak_rss_mb(),
         }
         if stopped_early:
             return summary
