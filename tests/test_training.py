@@ -213,3 +213,20 @@ def test_hook_already_on_the_buffer_is_not_added_twice(tmp_path):
     assert sum(t is base.hook for t in loop.replay_buffer._transform) == 1
     loop = DQNLoop(base.env, base.actor, base.explorer, hook=base.hook, config=base.config)
     assert sum(t is base.hook for t in loop.replay_buffer._transform) == 1
+
+
+def test_finished_run_keeps_no_second_copy_of_the_buffer(tmp_path):
+    opts = dict(checkpoint_interval_frames=200, final_eval_episodes=0)
+    _gridnav_loop(tmp_path / "lean", 600, **opts).run()
+    ckpt = tmp_path / "lean" / "checkpoints"
+    assert torch.load(ckpt / "last.pt", weights_only=False)["buffer_dir"] is None
+    assert not [p for p in ckpt.iterdir() if p.name.startswith("buffer_")]
+    with pytest.raises(ValueError, match="finished.*keep_final_buffer"):
+        _gridnav_loop(tmp_path / "lean", 600, **opts).run(resume=True)
+    # keep_final_buffer: the finished run can be extended with a larger budget
+    _gridnav_loop(tmp_path / "kept", 600, keep_final_buffer=True, **opts).run()
+    state = torch.load(tmp_path / "kept" / "checkpoints" / "last.pt", weights_only=False)
+    assert (tmp_path / "kept" / "checkpoints" / state["buffer_dir"]).is_dir()
+    more = _gridnav_loop(tmp_path / "kept", 800, keep_final_buffer=True, buffer_size=600,
+                         **opts).run(resume=True)
+    assert more["frames"] == 800

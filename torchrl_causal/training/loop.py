@@ -98,6 +98,10 @@ class LoopConfig:
             next episode end (0: only at the end).
         stop_after_frames: stop, as if killed, after the first checkpoint at or
             past this frame (``None``: run to the end).
+        keep_final_buffer: keep a copy of the replay buffer in the finished run's
+            checkpoint, so the run can be extended later (default False: a
+            finished run keeps none, and its disk holds one buffer at most -- a
+            memmap storage's own files).
         seed: seeds torch, NumPy, Python, the env, its transforms and the evaluations.
         device: where the network, the buffer samples and the gate run
             (the env stays where it is).
@@ -137,6 +141,7 @@ class LoopConfig:
     keep_best: bool = True
     checkpoint_interval_frames: int = 3000
     stop_after_frames: int | None = None
+    keep_final_buffer: bool = False
     seed: int = 0
     device: str = "cpu"
     progress: bool = False
@@ -178,7 +183,7 @@ class LoopConfig:
             bad("max_grad_norm", "None or a number > 0")
         if self.loss_function not in LOSS_FUNCTIONS:
             bad("loss_function", f"one of {LOSS_FUNCTIONS}")
-        for name in ("double_dqn", "keep_best", "progress"):
+        for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "True or False")
         try:
@@ -465,21 +470,31 @@ class DQNLoop:
             "config": dataclasses.asdict(self.config),
         }
 
-    def _save_checkpoint(self) -> None:
+    def _save_checkpoint(self, final: bool = False) -> None:
         # The buffer goes to a new folder; last.pt (written atomically after it)
         # names it, and older folders are removed only then: a kill at any point
-        # leaves a consistent last.pt + buffer pair.
+        # leaves a consistent last.pt + buffer pair. A finished run's checkpoint
+        # keeps no copy of the buffer unless keep_final_buffer is set.
         if self.paths is None:
             return
-        buffer_dir = self.paths["buffer"].with_name(f"buffer_{self.state['n_ckpt']}")
-        self.replay_buffer.dumps(buffer_dir)
-        atomic_save({**self.state_dict(), "buffer_dir": buffer_dir.name}, self.paths["checkpoint"])
+        name = None
+        if not final or self.config.keep_final_buffer:
+            buffer_dir = self.paths["buffer"].with_name(f"buffer_{self.state['n_ckpt']}")
+            self.replay_buffer.dumps(buffer_dir)
+            name = buffer_dir.name
+        atomic_save({**self.state_dict(), "buffer_dir": name}, self.paths["checkpoint"])
         for old in self.paths["buffer"].parent.glob("buffer_*"):
-            if old.is_dir() and old.name != buffer_dir.name and old.name != "buffer_storage":
+            if old.is_dir() and old.name != name and old.name != "buffer_storage":
                 shutil.rmtree(old, ignore_errors=True)
 
     def _load_checkpoint(self) -> None:
         ckpt = torch.load(self.paths["checkpoint"], weights_only=False)
+        if ckpt.get("buffer_dir") is None:
+            raise ValueError(
+                f"Cannot resume from {self.paths['checkpoint']}: the run finished and its final "
+                "checkpoint keeps no replay buffer (LoopConfig.keep_final_buffer=False); start a "
+                "new run, or set keep_final_buffer=True to extend finished runs later"
+            )
         self.state.update(ckpt["loop"])
         self._episodes = ckpt["episodes"]
         self.loss.load_state_dict(ckpt["loss"])
@@ -693,7 +708,7 @@ class DQNLoop:
                     st["n_ckpt"] += 1
                     while st["next_ckpt"] <= st["frames"]:
                         st["next_ckpt"] += cfg.checkpoint_interval_frames or math.inf
-                    self._save_checkpoint()
+                    self._save_checkpoint(final=finished)
                     if not finished:
                         self._restart_collector()
                     if (cfg.stop_after_frames is not None and not finished
