@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import multiprocessing
 import statistics
 import sys
@@ -48,6 +47,11 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+import results  # noqa: E402  (recipes/results.py: the CI helper the figures share)
 
 VARIANTS = ("dqn", "expert", "p", "pn", "v2", "dqn_v2eps")
 #: The V2 gate's consult probability (thesis ProbCausalModel, CBNGate's default).
@@ -131,16 +135,11 @@ def run_one(variant: str, seed: int, frames: int, window: int, threshold: float)
     }
 
 
-def mean_ci95(values):
-    n = len(values)
-    if n == 0:
-        return float("nan"), float("nan")
-    m = statistics.fmean(values)
-    if n == 1:
-        return m, 0.0
-    from scipy import stats
-
-    return m, float(stats.t.ppf(0.975, n - 1) * statistics.stdev(values) / math.sqrt(n))
+def mean_ci95(values) -> tuple[float, float]:
+    """Mean over seeds and the half-width of its 95 % CI (the recipes' :func:`results.mean_ci95`;
+    0 for one seed)."""
+    mean, half = results.mean_ci95(np.asarray(values, dtype=float)[:, None])
+    return float(mean[0]), (0.0 if len(values) == 1 else float(half[0]))
 
 
 def aggregate(runs, window: int, threshold: float) -> dict:
@@ -163,22 +162,21 @@ def aggregate(runs, window: int, threshold: float) -> dict:
     }
 
 
-def plot(results: dict, path: Path, window: int) -> None:
+def plot(by_variant: dict, path: Path, window: int) -> None:
     """Mean moving success (``window`` episodes) per variant over training episodes, 95% CI."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for variant, runs in results.items():
+    for variant, runs in by_variant.items():
         n = min(len(r["success"]) for r in runs)
         curves = np.array([np.convolve(r["success"][:n], np.ones(window) / window, "valid")
                            for r in runs])
         x = np.arange(window, n + 1)
-        m = curves.mean(0)
-        half = (1.96 * curves.std(0, ddof=1) / np.sqrt(len(runs))) if len(runs) > 1 else 0 * m
+        m, half = results.mean_ci95(curves)
+        half = np.nan_to_num(half)  # one seed: no band
         ax.plot(x, m, label=f"{variant} ({len(runs)} seeds)")
         ax.fill_between(x, m - half, m + half, alpha=0.2)
     ax.set_xlabel("training episode")
@@ -211,9 +209,9 @@ def main(argv=None) -> int:
     with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
         runs = list(ex.map(run_one, *zip(*jobs), *[[x] * len(jobs) for x in
                                                     (args.frames, args.window, args.threshold)]))
-    results = {v: [r for r in runs if r["variant"] == v] for v in args.variants}
+    by_variant = {v: [r for r in runs if r["variant"] == v] for v in args.variants}
     lines = []
-    for v, rs in results.items():
+    for v, rs in by_variant.items():
         obj = aggregate(rs, args.window, args.threshold)
         obj["frames"] = args.frames
         lines.append(json.dumps(obj))
@@ -222,7 +220,7 @@ def main(argv=None) -> int:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         args.json_out.write_text("\n".join(lines) + "\n")
     if args.plot:
-        plot(results, args.plot, args.window)
+        plot(by_variant, args.plot, args.window)
     return 0
 
 
