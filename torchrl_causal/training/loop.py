@@ -541,9 +541,9 @@ class DQNLoop:
         done = nxt["done"].reshape(n_envs, steps).tolist()
         rewards = nxt["reward"].reshape(n_envs, steps).tolist()
         gates = {k: batch[k].reshape(n_envs, steps).float().tolist() for k in self.gate_keys}
-        flags = {c: nxt.get(self.outcome_keys[c], None) for c in ("success", "crash", "out_of_bounds")}
+        raw = {c: nxt.get(key, None) for c, key in self.outcome_keys.items()}
         flags = {c: (v.reshape(n_envs, steps, -1).any(-1).tolist() if v is not None else None)
-                 for c, v in flags.items()}
+                 for c, v in raw.items()}
         for t in range(steps):
             for e in range(n_envs):
                 ep = self._episodes[e]
