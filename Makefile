@@ -19,7 +19,7 @@ $(VENV)/.installed: pyproject.toml
 	# ultralytics needs torchvision; the CPU torch file on disk cannot load PyPI's
 	# torchvision, so torch and torchvision are installed as a matched pair first.
 	$(PIP) install -q "torch==2.14.1" "torchvision==0.29.1"
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -q -e ".[dev,perception]"
 	touch $@
 
 venv: $(VENV)/.installed
