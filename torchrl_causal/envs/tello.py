@@ -1,0 +1,707 @@
+"""``TelloEnv``: the real drone (DJI Tello, through ``djitellopy``) as a TorchRL ``EnvBase``, with safety.
+
+The env speaks the same language as :class:`~torchrl_causal.envs.DroneNavEnv`:
+the action is ``Categorical(8)`` in :data:`~torchrl_causal.schema.ACTION_NAMES`
+order, mapped to the Tello SDK's ``forward/back/left/right/up/down <cm>`` and
+``ccw/cw <deg>`` with the env's step sizes (``step_size`` 0.25 m -> 25 cm,
+the Tello's minimum is 20 cm; ``turn_deg`` 15); the observation has the keys the
+RGB-only feature stack (:func:`~torchrl_causal.transforms.make_causal_transforms`)
+reads: ``pixels`` uint8 ``[H, W, 3]`` (the decoded video frame, centre-cropped to
+the aspect of ``image_size`` and resized), ``depth`` float32 ``[H, W]`` (metres,
+from ``depth_estimator``), ``altitude`` ``[1]`` (the state's ``tof``, m),
+``goal_in_sight`` / ``goal_distance`` / ``goal_angle`` (the
+:class:`~torchrl_causal.perception.goal.GoalMeter` of ``detector``, as in
+:class:`DroneNavEnv`), ``battery`` ``[1]`` (%), and the outcome flags
+``crashed`` / ``reached`` / ``out_of_bounds``.
+
+Perception is pluggable and RGB-only: ``detector`` is any
+:class:`~torchrl_causal.perception.goal.GoalDetector` and ``depth_estimator``
+any callable ``uint8 [B, H, W, 3] -> float32 [B, H, W]`` (metres). Against the
+:class:`~torchrl_causal.envs.tello_emulator.TelloEmulator` the simulator's
+ground truth can stand in for both (``emu.sim_detector()``,
+``emu.sim_depth_estimator()``; a simulation-only test aid).
+
+Outcomes (no ground truth on a real drone): ``crashed`` when a move is answered
+``error Motor stop`` (the Tello's reply when a collision stopped it) or the
+drone is found on the ground; ``reached`` when the goal is in sight within
+``reach_distance`` and ``reach_angle``; ``out_of_bounds`` when a move would
+leave the geofence or the height limits (the move is then **not** sent) or the
+measured height leaves them. Reward: :mod:`~torchrl_causal.envs.rewards` on
+the detector's measurement (``"thesis"``, the default, uses nothing else;
+``"progress"`` uses the measured goal distance before and after the step while
+the goal is in sight, 0 progress otherwise).
+
+Safety is enforced here, not in scripts (see :doc:`/tello`): battery floors
+before take-off and in flight, a geofence in the take-off frame (dead reckoning
+of the executed moves) and height limits, command timeouts with retries (moves
+are retried only after an explicit ``error`` reply, never after a timeout, when
+they may have run), stale replies flushed before each command, a keepalive
+while idle in the air, landing at the end of every episode, on any exception
+(``KeyboardInterrupt`` included), on :meth:`TelloEnv.close` and at interpreter
+exit, ``emergency`` only if landing fails, and ``dry_run`` that prints the
+commands instead of sending them.
+
+Example:
+    >>> import torch
+    >>> from torchrl_causal.envs.tello import TelloEnv
+    >>> from torchrl_causal.perception.goal import SimGoalDetector
+    >>> class NoGoal(SimGoalDetector):
+    ...     def detect(self, pixels, depth=None, **_):
+    ...         return torch.zeros(len(pixels), 0, 4), torch.zeros(len(pixels), 0)
+    >>> env = TelloEnv(dry_run=True, detector=NoGoal(), verbose=False,
+    ...                depth_estimator=lambda p: torch.full(p.shape[:3], 3.0))
+    >>> td = env.reset()
+    >>> td = env.step(td.set("action", torch.tensor(0)))
+    >>> env.sent[-2:], td["next", "reward"].item()
+    (['takeoff', 'forward 25'], -9.0)
+    >>> env.close(); env.sent[-1]
+    'land'
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import math
+import threading
+import time
+import weakref
+from typing import Callable
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from ..perception.goal import GoalDetector, GoalMeter
+from ..schema import ACTION_NAMES
+from .rewards import StepOutcome, make_reward
+
+__all__ = ["TelloEnv", "TelloError", "TelloCommandError", "TelloSafetyError", "TelloVideoError",
+           "ACTION_COMMANDS"]
+
+LOGGER = logging.getLogger("torchrl_causal.tello")
+
+#: SDK command word of each action, in :data:`~torchrl_causal.schema.ACTION_NAMES` order.
+ACTION_COMMANDS: tuple[str, ...] = tuple(
+    {"forward": "forward", "backward": "back", "left": "left", "right": "right", "ascend": "up",
+     "descend": "down", "turn_left": "ccw", "turn_right": "cw"}[n] for n in ACTION_NAMES)
+
+_OPEN_ENVS: "weakref.WeakSet[TelloEnv]" = weakref.WeakSet()
+
+
+def _land_all_at_exit():  # pragma: no cover - runs at interpreter exit
+    for env in list(_OPEN_ENVS):
+        try:
+            env.land(reason="interpreter exit")
+        except Exception as e:  # noqa: BLE001
+            LOGGER.error("atexit landing failed: %r", e)
+
+
+atexit.register(_land_all_at_exit)
+
+
+class TelloError(RuntimeError):
+    """Base class of the errors of :class:`TelloEnv` (the drone is landed when they propagate)."""
+
+
+class TelloCommandError(TelloError):
+    """A command failed after its retries (the message names the command and the last reply)."""
+
+
+class TelloSafetyError(TelloError):
+    """A safety rule refused to fly (e.g. battery below the take-off floor)."""
+
+
+class TelloVideoError(TelloError):
+    """No fresh video frame within ``frame_timeout``."""
+
+
+def _num(name, value, low=None, strict=False):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if strict else value >= low
+    if not ok:
+        cond = "" if low is None else f" {'>' if strict else '>='} {low}"
+        raise ValueError(f"{name} must be a finite number{cond}, got {value!r}")
+    return float(value)
+
+
+class TelloEnv(EnvBase):
+    """A DJI Tello (or a :class:`~torchrl_causal.envs.tello_emulator.TelloEmulator`) as a TorchRL env.
+
+    Unbatched (``batch_size=[]``). The drone is connected, switched to video and
+    taken off at the first :meth:`reset`; every episode ends landed.
+
+    Args:
+        tello: a ``djitellopy.Tello`` (e.g. ``TelloEmulator.client()``); None:
+            ``djitellopy.Tello(host)`` (a real drone) unless ``dry_run``.
+        host: the drone's address when ``tello`` is None.
+        detector: a :class:`~torchrl_causal.perception.goal.GoalDetector` (RGB only).
+        depth_estimator: callable ``uint8 [B, H, W, 3] -> float32 [B, H, W]`` (m).
+        image_size: ``int`` or ``(height, width)`` of ``pixels``/``depth`` (>= 32).
+        fov_deg: vertical field of view of the (cropped) camera image (deg):
+            60 for the emulator's default camera, about 55.6 for a real Tello
+            (82.6 deg diagonal, 4:3).
+        step_size: metres per move action (>= 0.20, the Tello's minimum).
+        turn_deg: degrees per turn action (1..360).
+        max_steps: truncation horizon.
+        max_depth: depth clip (m).
+        reward: ``"thesis"`` (default), ``"progress"`` or a callable of a
+            :class:`~torchrl_causal.envs.rewards.StepOutcome`.
+        confidence_threshold: detector score needed for ``goal_in_sight``.
+        reach_distance: goal in sight within this measured distance (m) counts
+            as reached (default 0.67: the simulator's goal point, 0.47 m in
+            front of the board, plus its 0.2 m reach radius).
+        reach_angle: ... and within this angle (deg).
+        geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
+            (x forward, y left at take-off), checked on the dead-reckoned
+            position before each move; None: no geofence.
+        min_height: lowest allowed height (m) for a descend and for the measured height.
+        max_height: highest allowed height (m).
+        min_battery_takeoff: battery (%) needed to take off.
+        min_battery: the episode is truncated (and the drone landed) below this.
+        command_timeout: seconds to wait for a reply (whole seconds, djitellopy's unit).
+        takeoff_timeout: seconds to wait for ``takeoff``/``land``.
+        retries: extra attempts of a failed command.
+        frame_timeout: seconds to wait for a fresh video frame after a move.
+        fresh_frames: frames decoded after a move's reply before observing
+            (covers the frames already in flight).
+        settle_s: extra wait after a move before observing (s); a real
+            Tello's video lags 0.3 s or more.
+        keepalive_s: send ``keepalive`` when no command went out for this long
+            while flying (the Tello lands after 15 s); None: off.
+        before_takeoff: called as ``before_takeoff(env)`` in every
+            :meth:`reset` before the take-off, e.g. ``emu.reset_world`` or a
+            prompt to carry the drone back to the start.
+        emergency_on_failure: send ``emergency`` (motors off) when landing fails.
+        dry_run: print the commands instead of sending them (black frames).
+        verbose: in ``dry_run``, print the commands (else only log them).
+        device: device of the output tensors.
+
+    Attributes:
+        sent: every command sent (or printed), in order.
+        flying: whether the env believes the drone is in the air.
+
+    Example:
+        >>> import torch
+        >>> from torchrl_causal.perception.goal import SimGoalDetector
+        >>> env = TelloEnv(dry_run=True, detector=SimGoalDetector(), verbose=False,
+        ...                depth_estimator=lambda p: torch.ones(p.shape[:3]))
+        >>> env.action_spec.n, env.observation_spec["pixels"].shape
+        (8, torch.Size([84, 84, 3]))
+        >>> env.close()
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        tello=None,
+        *,
+        host: str = "192.168.10.1",
+        detector: GoalDetector,
+        depth_estimator: Callable[[torch.Tensor], torch.Tensor],
+        image_size: int | tuple[int, int] = 84,
+        fov_deg: float = 60.0,
+        step_size: float = 0.25,
+        turn_deg: float = 15.0,
+        max_steps: int = 200,
+        max_depth: float = 10.0,
+        reward="thesis",
+        confidence_threshold: float = 0.7,
+        reach_distance: float = 0.67,
+        reach_angle: float = 30.0,
+        geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
+        min_height: float = 0.2,
+        max_height: float = 2.5,
+        min_battery_takeoff: float = 20.0,
+        min_battery: float = 10.0,
+        command_timeout: int = 7,
+        takeoff_timeout: int = 20,
+        retries: int = 2,
+        frame_timeout: float = 3.0,
+        fresh_frames: int = 2,
+        settle_s: float = 0.0,
+        keepalive_s: float | None = 5.0,
+        before_takeoff: Callable | None = None,
+        emergency_on_failure: bool = True,
+        dry_run: bool = False,
+        verbose: bool = True,
+        device=None,
+    ):
+        if not isinstance(detector, GoalDetector):
+            raise ValueError(f"detector must be a GoalDetector, got {detector!r}")
+        if not callable(depth_estimator):
+            raise ValueError(f"depth_estimator must be a callable, got {depth_estimator!r}")
+        if isinstance(image_size, (int, np.integer)) and not isinstance(image_size, bool):
+            image_size = (int(image_size), int(image_size))
+        if (not isinstance(image_size, (tuple, list)) or len(image_size) != 2
+                or not all(isinstance(v, (int, np.integer)) and v >= 32 for v in image_size)):
+            raise ValueError(f"image_size must be an int or (height, width), each >= 32, "
+                             f"got {image_size!r}")
+        if not (isinstance(fov_deg, (int, float)) and 0 < fov_deg < 180):
+            raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg!r}")
+        _num("step_size", step_size)
+        if not 0.2 <= step_size <= 5.0:
+            raise ValueError(f"step_size must be in [0.2, 5.0] m (Tello moves 20-500 cm), "
+                             f"got {step_size!r}")
+        _num("turn_deg", turn_deg)
+        if not 1 <= round(turn_deg) <= 360:
+            raise ValueError(f"turn_deg must be in [1, 360], got {turn_deg!r}")
+        if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
+            raise ValueError(f"max_steps must be an int >= 1, got {max_steps!r}")
+        _num("max_depth", max_depth, 0, strict=True)
+        self.reward_fn = make_reward(reward)
+        if not (isinstance(confidence_threshold, (int, float)) and 0 <= confidence_threshold <= 1):
+            raise ValueError(f"confidence_threshold must be in [0, 1], got {confidence_threshold!r}")
+        _num("reach_distance", reach_distance, 0, strict=True)
+        _num("reach_angle", reach_angle, 0, strict=True)
+        if geofence is not None:
+            if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
+                    or not all(isinstance(v, (int, float)) for v in geofence)
+                    or not (geofence[0] < 0 < geofence[2] and geofence[1] < 0 < geofence[3])):
+                raise ValueError("geofence must be None or (x_min, y_min, x_max, y_max) with "
+                                 f"x_min < 0 < x_max and y_min < 0 < y_max, got {geofence!r}")
+        _num("min_height", min_height, 0)
+        _num("max_height", max_height, 0, strict=True)
+        if not min_height < max_height:
+            raise ValueError(f"need min_height < max_height, got {min_height!r}, {max_height!r}")
+        for name, v in (("min_battery_takeoff", min_battery_takeoff), ("min_battery", min_battery)):
+            _num(name, v, 0)
+            if v > 100:
+                raise ValueError(f"{name} must be in [0, 100], got {v!r}")
+        for name, v in (("command_timeout", command_timeout), ("takeoff_timeout", takeoff_timeout)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{name} must be an int >= 1 (seconds), got {v!r}")
+        if not isinstance(retries, int) or isinstance(retries, bool) or retries < 0:
+            raise ValueError(f"retries must be an int >= 0, got {retries!r}")
+        _num("frame_timeout", frame_timeout, 0, strict=True)
+        if not isinstance(fresh_frames, int) or fresh_frames < 0:
+            raise ValueError(f"fresh_frames must be an int >= 0, got {fresh_frames!r}")
+        _num("settle_s", settle_s, 0)
+        if keepalive_s is not None:
+            _num("keepalive_s", keepalive_s, 0, strict=True)
+        if before_takeoff is not None and not callable(before_takeoff):
+            raise ValueError(f"before_takeoff must be None or a callable, got {before_takeoff!r}")
+
+        super().__init__(device=device if device is not None else "cpu", batch_size=torch.Size([]))
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.fov_deg = float(fov_deg)
+        self.step_cm = int(round(step_size * 100))
+        self.turn = int(round(turn_deg))
+        self.step_size = self.step_cm / 100.0
+        self.turn_deg = float(self.turn)
+        self.max_steps = int(max_steps)
+        self.max_depth = float(max_depth)
+        self.reach_distance = float(reach_distance)
+        self.reach_angle = float(reach_angle)
+        self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
+        self.min_height = float(min_height)
+        self.max_height = float(max_height)
+        self.min_battery_takeoff = float(min_battery_takeoff)
+        self.min_battery = float(min_battery)
+        self.command_timeout = int(command_timeout)
+        self.takeoff_timeout = int(takeoff_timeout)
+        self.retries = int(retries)
+        self.frame_timeout = float(frame_timeout)
+        self.fresh_frames = int(fresh_frames)
+        self.settle_s = float(settle_s)
+        self.keepalive_s = None if keepalive_s is None else float(keepalive_s)
+        self.before_takeoff = before_takeoff
+        self.emergency_on_failure = bool(emergency_on_failure)
+        self.dry_run = bool(dry_run)
+        self.verbose = bool(verbose)
+        self.detector = detector
+        self.depth_estimator = depth_estimator
+        h, w = self.image_size
+        self.hfov_deg = math.degrees(2 * math.atan(math.tan(math.radians(self.fov_deg) / 2) * w / h))
+        self.goal_meter = GoalMeter(detector, hfov_deg=self.hfov_deg,
+                                    confidence_threshold=float(confidence_threshold),
+                                    max_depth=self.max_depth)
+        self._make_specs()
+
+        if tello is None and not self.dry_run:
+            from djitellopy import Tello
+
+            tello = Tello(host=host, retry_count=1)
+        self.tello = tello
+        self.sent: list[str] = []
+        self.flying = False
+        self._connected = False
+        self._closed = False
+        self._frame_reader = None
+        self._lock = threading.RLock()
+        self._last_command = time.monotonic()
+        self._odom = (0.0, 0.0, 0.0, 0.0)  # x fwd, y left, z, yaw (rad) in the take-off frame
+        self._steps = 0
+        self._prev_distance: float | None = None
+        self._keepalive_stop = threading.Event()
+        self._keepalive_thread = None
+        _OPEN_ENVS.add(self)
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self):
+        h, w = self.image_size
+        dev = self.device
+        f32 = torch.float32
+
+        def flag():
+            return Categorical(2, shape=(1,), dtype=torch.bool, device=dev)
+
+        self.observation_spec = Composite(
+            pixels=Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev),
+            depth=Bounded(0.0, self.max_depth, shape=(h, w), dtype=f32, device=dev),
+            altitude=Unbounded(shape=(1,), dtype=f32, device=dev),
+            battery=Bounded(0.0, 100.0, shape=(1,), dtype=f32, device=dev),
+            goal_in_sight=flag(),
+            goal_distance=Bounded(0.0, self.max_depth, shape=(1,), dtype=f32, device=dev),
+            goal_angle=Bounded(-90.0, 90.0, shape=(1,), dtype=f32, device=dev),
+            crashed=flag(),
+            reached=flag(),
+            out_of_bounds=flag(),
+            shape=(),
+            device=dev,
+        )
+        self.action_spec = Categorical(len(ACTION_NAMES), shape=(), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(1,), dtype=f32, device=dev)
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(),
+                                   device=dev)
+
+    # ------------------------------------------------------------------ commands
+    def action_command(self, action: int) -> str:
+        """The SDK command of ``action``, e.g. ``action_command(0) == "forward 25"``."""
+        word = ACTION_COMMANDS[int(action)]
+        return f"{word} {self.turn if word in ('cw', 'ccw') else self.step_cm}"
+
+    def _flush(self):
+        try:
+            self.tello.get_own_udp_object()["responses"].clear()
+        except (KeyError, AttributeError):
+            pass
+
+    def _send(self, cmd: str, timeout: int | None = None, *, retry_on_timeout: bool = True,
+              retries: int | None = None) -> str | None:
+        """Sends ``cmd``; returns the reply (``None``: no reply and not retried).
+
+        Retries after an ``error`` reply, and after a timeout when
+        ``retry_on_timeout``; ``error Motor stop`` is returned at once.
+
+        Raises:
+            TelloCommandError: every attempt failed.
+        """
+        timeout = int(timeout or self.command_timeout)
+        retries = self.retries if retries is None else int(retries)
+        with self._lock:
+            self.sent.append(cmd)
+            self._last_command = time.monotonic()
+            if self.dry_run:
+                if self.verbose:
+                    print(f"[dry-run] {cmd}", flush=True)
+                LOGGER.info("[dry-run] %s", cmd)
+                return "ok"
+            reply = None
+            for attempt in range(retries + 1):
+                self._flush()  # a late reply of an earlier command must not answer this one
+                reply = self.tello.send_command_with_return(cmd, timeout=timeout)
+                self._last_command = time.monotonic()
+                if reply.startswith("Aborting command"):
+                    LOGGER.warning("Tello: no reply to %r within %d s (attempt %d/%d)", cmd,
+                                   timeout, attempt + 1, retries + 1)
+                    if not retry_on_timeout:
+                        return None
+                    continue
+                low = reply.lower()
+                if "motor stop" in low:
+                    return reply
+                if "ok" in low or (cmd.endswith("?") and "error" not in low):
+                    return reply
+                LOGGER.warning("Tello: %r answered %r (attempt %d/%d)", cmd, reply, attempt + 1,
+                               retries + 1)
+            raise TelloCommandError(
+                f"Tello command {cmd!r} failed after {retries + 1} attempt(s); last reply: {reply!r}")
+
+    def _state(self) -> dict:
+        if self.dry_run:
+            return {"tof": int(round(self._odom[2] * 100)), "h": int(round(self._odom[2] * 100)),
+                    "bat": 100}
+        return dict(self.tello.get_own_udp_object().get("state") or {})
+
+    def battery(self) -> float:
+        """The battery level (%) from the state stream (or ``battery?``)."""
+        st = self._state()
+        if "bat" in st:
+            return float(st["bat"])
+        return float(int(self._send("battery?")))
+
+    # ------------------------------------------------------------------ flight
+    def _connect(self):
+        if self._connected:
+            return
+        self._send("command")
+        if not self.dry_run:
+            t0 = time.monotonic()
+            while not self._state() and time.monotonic() - t0 < self.command_timeout:
+                time.sleep(0.05)
+            if not self._state():
+                raise TelloCommandError("no state message from the Tello after 'command' "
+                                        f"within {self.command_timeout} s")
+            self._send("streamon")
+            self.tello.stream_on = True
+            self._frame_reader = self.tello.get_frame_read()
+        self._connected = True
+        if self.keepalive_s is not None and not self.dry_run:
+            self._keepalive_thread = threading.Thread(target=self._keepalive_loop, daemon=True,
+                                                      name="tello-keepalive")
+            self._keepalive_thread.start()
+
+    def _keepalive_loop(self):
+        while not self._keepalive_stop.wait(0.2):
+            if not self.flying or time.monotonic() - self._last_command < self.keepalive_s:
+                continue
+            if not self._lock.acquire(blocking=False):
+                continue
+            try:
+                self._send("keepalive", timeout=1, retries=0, retry_on_timeout=False)
+            except TelloError as e:
+                LOGGER.warning("Tello keepalive failed: %s", e)
+            finally:
+                self._lock.release()
+
+    def land(self, reason: str = "episode end") -> None:
+        """Lands if flying (``emergency`` as the last resort when landing fails)."""
+        if not self.flying:
+            return
+        LOGGER.info("Tello: landing (%s)", reason)
+        try:
+            self._send("land", timeout=self.takeoff_timeout)
+        except TelloError as e:
+            if self.emergency_on_failure:
+                LOGGER.error("Tello: landing failed (%s); sending 'emergency' (motors off)", e)
+                with self._lock:
+                    self.sent.append("emergency")
+                    if not self.dry_run:
+                        self.tello.send_command_without_return("emergency")
+            else:
+                LOGGER.error("Tello: landing failed (%s); the drone may still be flying", e)
+                raise
+        finally:
+            self.flying = False
+            if self.tello is not None:
+                self.tello.is_flying = False
+
+    def _takeoff(self):
+        bat = self.battery()
+        if bat < self.min_battery_takeoff:
+            raise TelloSafetyError(f"battery {bat:.0f}% is below min_battery_takeoff "
+                                   f"{self.min_battery_takeoff:.0f}%: not taking off")
+        self.flying = True  # from here on, any failure lands
+        self._send("takeoff", timeout=self.takeoff_timeout)
+        st = self._state()
+        z = st.get("tof", 0) / 100.0 if st else 1.0
+        self._odom = (0.0, 0.0, z if not self.dry_run else 1.0, 0.0)
+
+    # ------------------------------------------------------------------ observation
+    def _fresh_frame(self, since) -> np.ndarray:
+        if self.dry_run:
+            return np.zeros((*self.image_size, 3), np.uint8)
+        if self.settle_s:
+            time.sleep(self.settle_s)
+        reader = self._frame_reader
+        seen, last = 0, since
+        t0 = time.monotonic()
+        while seen < max(1, self.fresh_frames):
+            frame = reader.frame
+            if frame is not last:
+                seen += 1
+                last = frame
+                continue
+            if time.monotonic() - t0 > self.frame_timeout:
+                raise TelloVideoError(f"no fresh video frame from the Tello within "
+                                      f"{self.frame_timeout:g} s (video stalled?)")
+            time.sleep(0.005)
+        return np.asarray(last)
+
+    def preprocess(self, frame: np.ndarray) -> torch.Tensor:
+        """A decoded RGB frame ``[H0, W0, 3]`` -> ``pixels`` uint8 ``image_size``: centre crop
+        to the target aspect, then an antialiased bilinear resize."""
+        h, w = self.image_size
+        img = torch.as_tensor(np.ascontiguousarray(frame))
+        H0, W0 = img.shape[:2]
+        if W0 * h > H0 * w:  # too wide: crop the width
+            cw = int(round(H0 * w / h))
+            x0 = (W0 - cw) // 2
+            img = img[:, x0:x0 + cw]
+        elif W0 * h < H0 * w:
+            ch = int(round(W0 * h / w))
+            y0 = (H0 - ch) // 2
+            img = img[y0:y0 + ch]
+        if tuple(img.shape[:2]) != (h, w):
+            x = img.permute(2, 0, 1).unsqueeze(0).float()
+            x = torch.nn.functional.interpolate(x, size=(h, w), mode="bilinear",
+                                                align_corners=False, antialias=True)
+            img = x.round().clamp(0, 255).to(torch.uint8)[0].permute(1, 2, 0)
+        return img.contiguous()
+
+    def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
+        pixels = self.preprocess(self._fresh_frame(frame_since))
+        depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
+        depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
+        meas = self.goal_meter(pixels.unsqueeze(0), depth)
+        in_sight = bool(meas.in_sight[0])
+        dist = float(meas.distance[0]) if in_sight else 0.0
+        angle = float(meas.angle[0]) if in_sight else 0.0
+        st = self._state()
+        alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
+        bat = float(st.get("bat", 0.0)) if st else 0.0
+        reached = (in_sight and dist <= self.reach_distance and abs(angle) <= self.reach_angle
+                   and not crashed)
+        f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
+        s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
+        return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
+                "goal_in_sight": f[0:1], "goal_distance": s[2:3], "goal_angle": s[3:4],
+                "crashed": f[1:2], "reached": f[2:3], "out_of_bounds": f[3:4]}
+
+    def _current_frame(self):
+        return None if self._frame_reader is None else self._frame_reader.frame
+
+    # ------------------------------------------------------------------ EnvBase
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if self._closed:
+            raise TelloError("TelloEnv is closed")
+        try:
+            self._connect()
+            self.land(reason="reset")
+            if self.before_takeoff is not None:
+                self.before_takeoff(self)
+            self._takeoff()
+            self._steps = 0
+            self._prev_distance = None
+            obs = self._observe(self._current_frame())
+        except BaseException as e:
+            self.land(reason=f"exception in reset: {e!r}")
+            raise
+        self._prev_distance = float(obs["goal_distance"]) if bool(obs["goal_in_sight"]) else None
+        false = torch.zeros(1, dtype=torch.bool)
+        obs.update(done=false, terminated=false.clone(), truncated=false.clone())
+        return TensorDict(obs, batch_size=torch.Size([])).to(self.device)
+
+    def _predicted(self, action: int):
+        fwd = left = up = dyaw = 0.0
+        name = ACTION_NAMES[action]
+        s = self.step_size
+        fwd = {"forward": s, "backward": -s}.get(name, 0.0)
+        left = {"left": s, "right": -s}.get(name, 0.0)
+        up = {"ascend": s, "descend": -s}.get(name, 0.0)
+        dyaw = {"turn_left": 1.0, "turn_right": -1.0}.get(name, 0.0) * math.radians(self.turn)
+        x, y, z, yaw = self._odom
+        c, sn = math.cos(yaw), math.sin(yaw)
+        return (x + c * fwd - sn * left, y + sn * fwd + c * left, z + up, yaw + dyaw)
+
+    def _inside(self, pose) -> bool:
+        x, y, z, _ = pose
+        if not self.min_height <= z <= self.max_height:
+            return False
+        if self.geofence is None:
+            return True
+        x0, y0, x1, y1 = self.geofence
+        return x0 <= x <= x1 and y0 <= y <= y1
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = int(tensordict.get("action"))
+        try:
+            if not self.flying:
+                raise TelloError("step() while landed: call reset() first")
+            self._steps += 1
+            target = self._predicted(action)
+            crashed = out_of_bounds = False
+            since = self._current_frame()
+            if not self._inside(target):
+                out_of_bounds = True
+                LOGGER.warning("Tello: %r refused, it would leave the geofence/height limits "
+                               "(dead-reckoned target x=%.2f y=%.2f z=%.2f)",
+                               self.action_command(action), *target[:3])
+            else:
+                reply = self._send(self.action_command(action), retry_on_timeout=False)
+                if reply is not None and "motor stop" in reply.lower():
+                    crashed = True
+                    self.flying = False
+                    self.tello.is_flying = False
+                    LOGGER.warning("Tello: %r answered %r: crash", self.action_command(action),
+                                   reply)
+                else:
+                    self._odom = target
+            obs = self._observe(since, crashed=crashed, out_of_bounds=out_of_bounds)
+            st = self._state()
+            if not crashed and not self.dry_run and st and st.get("h", 1) == 0:
+                crashed = True  # on the ground without having been told to land
+                self.flying = False
+                obs["crashed"][0] = True
+                obs["reached"][0] = False
+                LOGGER.warning("Tello: the drone is on the ground (state h=0): counted as a crash")
+            alt = float(obs["altitude"])
+            if not crashed and self.flying and not self.dry_run and not (
+                    self.min_height - 0.1 <= alt <= self.max_height + 0.1):
+                out_of_bounds = True
+                obs["out_of_bounds"][0] = True
+                LOGGER.warning("Tello: measured height %.2f m outside [%g, %g]", alt,
+                               self.min_height, self.max_height)
+            in_sight = bool(obs["goal_in_sight"])
+            dist = float(obs["goal_distance"])
+            before = self._prev_distance if (in_sight and self._prev_distance is not None) else dist
+            reward = self.reward_fn(StepOutcome(
+                crashed=crashed, reached=bool(obs["reached"]), out_of_bounds=out_of_bounds,
+                in_sight=in_sight, goal_distance=dist, goal_angle=float(obs["goal_angle"]),
+                distance_before=before, distance_after=dist))
+            self._prev_distance = dist if in_sight else None
+            low_battery = float(obs["battery"]) < self.min_battery and not self.dry_run
+            if low_battery:
+                LOGGER.warning("Tello: battery %.0f%% below min_battery %.0f%%: ending the episode",
+                               float(obs["battery"]), self.min_battery)
+            terminated = crashed or bool(obs["reached"]) or out_of_bounds
+            truncated = not terminated and (self._steps >= self.max_steps or low_battery)
+            if terminated or truncated:
+                self.land(reason="episode end")
+        except BaseException as e:
+            self.land(reason=f"exception in step: {e!r}")
+            raise
+        obs["reward"] = torch.tensor([reward], dtype=torch.float32)
+        ends = torch.tensor([terminated, truncated, terminated or truncated])
+        obs.update(terminated=ends[0:1], truncated=ends[1:2], done=ends[2:3])
+        return TensorDict(obs, batch_size=torch.Size([])).to(self.device)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._seed = seed
+
+    # ------------------------------------------------------------------ closing
+    def close(self, *, raise_if_closed: bool = True):
+        """Lands, switches the video off and stops the keepalive (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self.land(reason="close")
+            finally:
+                self._keepalive_stop.set()
+                if self._connected and not self.dry_run:
+                    try:
+                        self._send("streamoff", timeout=1, retries=0)
+                    except TelloError as e:
+                        LOGGER.warning("Tello: streamoff failed: %s", e)
+                    if self._frame_reader is not None:
+                        self._frame_reader.stop()
+                if self.tello is not None:
+                    self.tello.stream_on = False
+                    self.tello.is_flying = False
+                    self.tello.background_frame_read = None
+                _OPEN_ENVS.discard(self)
+        try:
+            super().close(raise_if_closed=False)
+        except TypeError:  # pragma: no cover - older signature
+            super().close()
+
+    def __enter__(self) -> "TelloEnv":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
