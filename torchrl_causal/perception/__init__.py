@@ -21,3 +21,23 @@ from torchrl_causal.perception.goal import (
 )
 
 __all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg"]
+
+# Imported on first use (MuJoCo rendering, ultralytics): the package stays light and
+# importable without the ``perception`` extra.
+_LAZY = {
+    "View": "torchrl_causal.perception.dataset",
+    "render_views": "torchrl_causal.perception.dataset",
+    "write_datasets": "torchrl_causal.perception.dataset",
+    "load_views": "torchrl_causal.perception.dataset",
+    "evaluate_detector": "torchrl_causal.perception.dataset",
+}
+__all__ += list(_LAZY)
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(module), name)
