@@ -1,6 +1,9 @@
 """The nine causal state features as TorchRL transforms (thesis sec. 4.2-4.3).
 
 * :class:`DepthSections` -- minimum depth in the five image sections (Fig. 4.2).
+* :class:`EstimatedDepth` -- ``depth`` estimated from ``pixels`` by a monocular
+  depth estimator (:class:`~torchrl_causal.perception.depth.MonoDepth`), in place of
+  the simulator's depth.
 * :class:`GoalFeatures` -- goal in sight / distance / angle from a
   :class:`~torchrl_causal.perception.goal.GoalMeter` (for envs that do not
   measure the goal themselves; ``DroneNavEnv`` does).
@@ -15,12 +18,14 @@ pass ``altitude_key``).
 
 from torchrl_causal.transforms.depth import SECTION_NAMES, DepthSections, section_masks
 from torchrl_causal.transforms.discretize import Discretize, Thresholds
+from torchrl_causal.transforms.estimated_depth import EstimatedDepth
 from torchrl_causal.transforms.goal import GoalFeatures
 from torchrl_causal.transforms.stack import make_causal_transforms
 
 __all__ = [
     "DepthSections",
     "Discretize",
+    "EstimatedDepth",
     "GoalFeatures",
     "SECTION_NAMES",
     "Thresholds",
