@@ -23,7 +23,7 @@ What it emulates (Tello SDK 2.0/3.0, see :doc:`/tello`):
   positive from the take-off heading, ``bat`` drains with flight time.
 * **video** after ``streamon``: the onboard camera rendered at ``video_size``
   and ``fps``, encoded by PyAV's libx264 (``ultrafast``, ``zerolatency``, a
-  keyframe with SPS/PPS every ``gop`` frames), sent as raw Annex-B H.264 in
+  keyframe with SPS/PPS every ``gop`` frames and at every ``streamon``), sent as raw Annex-B H.264 in
   1460-byte datagrams (a frame's last datagram shorter) to ``video_port``.
 * **safety behaviour of the real drone**: it lands by itself after
   ``auto_land_s`` (15 s) without any command, and when the battery reaches
@@ -403,6 +403,7 @@ class TelloEmulator:
         self._takeoff_yaw = 0.0
         self._state_version = 0
         self.frames_sent = 0
+        self._force_keyframe = False
         self.datagrams_sent = 0
         self.frame_times: collections.deque = collections.deque(maxlen=10_000)
         self.commands_received = 0
@@ -889,6 +890,7 @@ class TelloEmulator:
             return
         if cmd == "streamon":
             self.streaming = True
+            self._force_keyframe = True  # a client can decode from the first frame it gets
             self._event("video stream on")
             self._reply("ok", addr, now)
             return
@@ -1046,6 +1048,11 @@ class TelloEmulator:
         t_render = time.perf_counter()
         frame = self._av.VideoFrame.from_ndarray(rgb, format="rgb24")
         frame.pts = self.frames_sent
+        if self._force_keyframe:
+            from av.video.frame import PictureType
+
+            frame.pict_type = PictureType.I
+            self._force_keyframe = False
         packets = self._encoder.encode(frame)
         payload = b"".join(bytes(p) for p in packets)
         self.frame_times.append((self.frames_sent, t_render))
