@@ -145,6 +145,57 @@ def build_loss(cfg: DictConfig, actor, env):
     return loss, optim
 
 
+def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str = "cpu",
+                env=None):
+    """The trained policy of a finished run folder, rebuilt by this recipe's builders.
+
+    The Q-network comes from ``model.pt`` (the final policy, ``eval.keep_best``'s
+    choice) and the explorer (the CBN gate with its compiled tables, or
+    epsilon-greedy) from the checkpoint's snapshot of that same policy.
+
+    Args:
+        run_dir: a run folder written by :func:`train`.
+        overrides: config overrides applied to the run's ``config.yaml``, e.g.
+            ``["features.options.perception=rgb"]`` to fly the policy on
+            features from the RGB image alone.
+        scene: the env's scene (default: the run's training scene); ignored
+            when ``env`` is given.
+        device: the device of the networks, the gate and the env outputs.
+        env: an env to act in instead (it must write the keys the policy
+            reads: ``pixels`` and, for CBN variants, ``causal_state``).
+
+    Returns:
+        ``(policy, env, cfg)``: a ``TensorDictSequential(actor, explorer)``, the
+        env and the run's config.
+
+    Raises:
+        FileNotFoundError: the folder has no ``config.yaml``, ``model.pt`` or
+            checkpoint (the run did not finish).
+    """
+    from tensordict.nn import TensorDictSequential
+
+    run_dir = Path(run_dir)
+    need = {"config": run_dir / "config.yaml", "model": run_dir / ru.RUN_LAYOUT["model"],
+            "checkpoint": run_dir / ru.RUN_LAYOUT["checkpoint"]}
+    for what, path in need.items():
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"run_dir={str(run_dir)!r} has no {what} file {str(path)!r}: is it a finished "
+                "run folder of recipes/train.py?")
+    cfg = OmegaConf.merge(OmegaConf.load(need["config"]),
+                          OmegaConf.from_dotlist(list(overrides)))
+    cfg.device = device
+    variant = ru.VARIANTS[cfg.variant]
+    if env is None:
+        env = build_env(cfg, variant, scene or cfg.env.layout, device)
+    actor, explorer, _ = build_agent(cfg, variant, env, device)
+    actor.load_state_dict(torch.load(need["model"], map_location=device, weights_only=False))
+    ckpt = torch.load(need["checkpoint"], map_location=device, weights_only=False)
+    best = ckpt.get("best")
+    explorer.load_state_dict(best["explorer"] if best else ckpt["explorer"])
+    return TensorDictSequential(actor, explorer), env, cfg
+
+
 def loop_config(cfg: DictConfig, variant: ru.Variant):
     """The recipe's options as a :class:`~torchrl_causal.training.LoopConfig`."""
     from torchrl_causal.training import LoopConfig

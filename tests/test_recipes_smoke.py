@@ -167,3 +167,26 @@ def test_resume_continues_exactly(tmp_path):
     summary_md = (root / "tables" / "summary.md").read_text()
     assert "| CBN-DQN V2 | 2 |" in summary_md and "eval_success_thesis" in summary_md
     assert (root / "tables" / "table_5_1_seed_3.md").exists()  # both copies ran seed 3
+
+
+def test_load_policy_reproduces_the_final_evaluation(tmp_path):
+    """recipes/train.py:load_policy rebuilds the finished run's policy (Q-network + gate with
+    its CBN tables): re-running the final evaluation's first episode gives the same reward."""
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import train as recipe
+
+    from torchrl_causal.training import evaluate
+
+    out = tmp_path / "run"
+    _run(["--config-name", "cbn_v2", f"output_dir={out}", *TINY, "seed=3"])
+    summary = json.loads((out / "summary.json").read_text())
+    policy, env, cfg = recipe.load_policy(out, scene="thesis")
+    assert cfg.seed == 3 and policy[1].tables is not None  # the gate has its tables
+    # the loop's final evaluation seeds scene i with 10_000_019 + seed * 1009 + i
+    res = evaluate(policy, env, episodes=1, seed=10_000_019 + 3 * 1009)
+    assert res["mean_reward"] == pytest.approx(summary["final_eval"]["thesis"]["mean_reward"],
+                                               abs=1e-4)
+    env.close()
+    with pytest.raises(FileNotFoundError, match="model"):
+        (out / "model.pt").unlink()
+        recipe.load_policy(out)
