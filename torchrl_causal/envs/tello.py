@@ -386,7 +386,8 @@ class TelloEnv(EnvBase):
         """Sends ``cmd``; returns the reply (``None``: no reply and not retried).
 
         Retries after an ``error`` reply, and after a timeout when
-        ``retry_on_timeout``; ``error Motor stop`` is returned at once.
+        ``retry_on_timeout``; ``error Motor stop`` and ``error Not flying``
+        (the drone is down) are returned at once.
 
         Raises:
             TelloCommandError: every attempt failed.
@@ -413,8 +414,8 @@ class TelloEnv(EnvBase):
                         return None
                     continue
                 low = reply.lower()
-                if "motor stop" in low:
-                    return reply
+                if "motor stop" in low or "not flying" in low:
+                    return reply  # final: the drone is down
                 if "ok" in low or (cmd.endswith("?") and "error" not in low):
                     return reply
                 LOGGER.warning("Tello: %r answered %r (attempt %d/%d)", cmd, reply, attempt + 1,
@@ -624,7 +625,8 @@ class TelloEnv(EnvBase):
                                self.action_command(action), *target[:3])
             else:
                 reply = self._send(self.action_command(action), retry_on_timeout=False)
-                if reply is not None and "motor stop" in reply.lower():
+                if reply is not None and ("motor stop" in reply.lower()
+                                          or "not flying" in reply.lower()):
                     crashed = True
                     self.flying = False
                     self.tello.is_flying = False
