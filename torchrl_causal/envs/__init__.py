@@ -13,6 +13,9 @@ registration) stays cheap and free of import cycles with torchrl.
 * :mod:`~torchrl_causal.envs.gridworld` -- :class:`GridNavEnv` (gymnasium, numpy),
   its schema :data:`GRIDNAV_SCHEMA`, expert CBNs :func:`gridnav_expert_dags` and
   the TorchRL factory :func:`make_gridnav_env`.
+* :mod:`~torchrl_causal.envs.tello` -- :class:`TelloEnv`, the real DJI Tello (djitellopy) with safety.
+* :mod:`~torchrl_causal.envs.tello_emulator` -- :class:`TelloEmulator`, the Tello SDK over UDP
+  with H.264 video, backed by :class:`DroneNavEnv` (software in the loop).
 * :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``
   and ``torchrl_causal/GridNav-v0``.
 """
@@ -53,6 +56,14 @@ _LAZY = {
     "DEFAULT_GRIDNAV_OBSTACLES": "gridworld",
     "gridnav_expert_dags": "gridworld",
     "make_gridnav_env": "gridworld",
+    "TelloEnv": "tello",
+    "TelloError": "tello",
+    "TelloCommandError": "tello",
+    "TelloSafetyError": "tello",
+    "TelloVideoError": "tello",
+    "ACTION_COMMANDS": "tello",
+    "TelloEmulator": "tello_emulator",
+    "TelloFaults": "tello_emulator",
 }
 
 __all__ = sorted(_LAZY)

@@ -152,8 +152,9 @@ class TelloEnv(EnvBase):
             :class:`~torchrl_causal.envs.rewards.StepOutcome`.
         confidence_threshold: detector score needed for ``goal_in_sight``.
         reach_distance: goal in sight within this measured distance (m) counts
-            as reached (default 0.67: the simulator's goal point, 0.47 m in
-            front of the board, plus its 0.2 m reach radius).
+            as reached (default 0.55: the simulator's goal point is 0.47 m in
+            front of the board, with a 0.2 m reach radius; at 0.67 the env
+            declared the reach one 0.25 m step before the simulator did).
         reach_angle: ... and within this angle (deg).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
@@ -183,6 +184,7 @@ class TelloEnv(EnvBase):
     Attributes:
         sent: every command sent (or printed), in order.
         flying: whether the env believes the drone is in the air.
+        last_frame: the last decoded video frame (RGB, full size) observed.
 
     Example:
         >>> import torch
@@ -211,7 +213,7 @@ class TelloEnv(EnvBase):
         max_depth: float = 10.0,
         reward="thesis",
         confidence_threshold: float = 0.7,
-        reach_distance: float = 0.67,
+        reach_distance: float = 0.55,
         reach_angle: float = 30.0,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         min_height: float = 0.2,
@@ -328,6 +330,7 @@ class TelloEnv(EnvBase):
             tello = Tello(host=host, retry_count=1)
         self.tello = tello
         self.sent: list[str] = []
+        self.last_frame: np.ndarray | None = None
         self.flying = False
         self._connected = False
         self._closed = False
@@ -506,7 +509,8 @@ class TelloEnv(EnvBase):
     # ------------------------------------------------------------------ observation
     def _fresh_frame(self, since) -> np.ndarray:
         if self.dry_run:
-            return np.zeros((*self.image_size, 3), np.uint8)
+            self.last_frame = np.zeros((*self.image_size, 3), np.uint8)
+            return self.last_frame
         if self.settle_s:
             time.sleep(self.settle_s)
         reader = self._frame_reader
@@ -522,7 +526,8 @@ class TelloEnv(EnvBase):
                 raise TelloVideoError(f"no fresh video frame from the Tello within "
                                       f"{self.frame_timeout:g} s (video stalled?)")
             time.sleep(0.005)
-        return np.asarray(last)
+        self.last_frame = np.asarray(last)
+        return self.last_frame
 
     def preprocess(self, frame: np.ndarray) -> torch.Tensor:
         """A decoded RGB frame ``[H0, W0, 3]`` -> ``pixels`` uint8 ``image_size``: centre crop

@@ -1,0 +1,304 @@
+"""Fly a trained run on a Tello: the emulator by default, a real drone with ``--host``.
+
+::
+
+    python recipes/fly_tello.py --run outputs/make_train --episodes 10
+    python recipes/fly_tello.py --run outputs/make_train --episodes 10 --compare-sim 10
+    python recipes/fly_tello.py --run outputs/make_train --host 192.168.10.1 \\
+        --perception mypkg.perception:build      # asks for confirmation (or --yes)
+
+The policy (Q-network, CBN gate with its tables) is rebuilt from the run folder
+by ``recipes/train.py``'s :func:`load_policy`; the env is a
+:class:`torchrl_causal.envs.TelloEnv` (with the run's feature stack for CBN
+variants). Against the :class:`~torchrl_causal.envs.TelloEmulator` the goal
+detector and the depth come from the simulator's ground truth (a test aid);
+a real drone needs RGB-only perception: ``--perception module:factory``, a
+callable returning ``(detector, depth_estimator)``.
+
+Writes to ``--out`` (default ``<run>/tello_<emulator|host>``): ``episodes.csv``
+(the training loop's columns that apply: episode, frames, reward, length,
+success, crash, out_of_bounds; plus ``success_sim``, the emulator's ground truth,
+and ``battery``), ``onboard.mp4`` (the decoded onboard video, H.264 via PyAV)
+and ``summary.json`` (success rates with 95 % Wilson intervals; with
+``--compare-sim N`` also the same policy's greedy episodes in ``DroneNavEnv``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+REAL_HOST_DEFAULT = "192.168.10.1"
+CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
+               "success_sim", "battery"]
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate (sensible at 0 and 1, unlike Wald).
+
+    Example:
+        >>> [round(v, 3) for v in wilson(10, 10)]
+        [0.722, 1.0]
+    """
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    den = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / den
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, c - h), min(1.0, c + h))
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--run", required=True, help="a finished run folder of recipes/train.py")
+    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--host", default=None,
+                   help=f"a real drone's address (e.g. {REAL_HOST_DEFAULT}); default: the emulator")
+    p.add_argument("--yes", action="store_true", help="skip the real-drone confirmation prompt")
+    p.add_argument("--perception", default=None,
+                   help="module:factory returning (detector, depth_estimator) (real drone)")
+    p.add_argument("--out", default=None)
+    p.add_argument("--max-steps", type=int, default=None, help="default: the run's env.max_steps")
+    p.add_argument("--compare-sim", type=int, default=0,
+                   help="also run N greedy episodes in DroneNavEnv and compare")
+    p.add_argument("--video-size", default="240x320", help="emulator video HxW")
+    p.add_argument("--time-scale", type=float, default=10.0, help="emulator motion speed-up")
+    p.add_argument("--fov", type=float, default=None,
+                   help="camera vertical FOV after the square crop (default 60 emulator, 55.6 Tello)")
+    p.add_argument("--settle", type=float, default=None,
+                   help="s to wait after a move before observing (default 0 emulator, 0.5 Tello)")
+    p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
+    p.add_argument("--no-video", action="store_true")
+    a = p.parse_args(argv)
+    if a.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {a.episodes}")
+    if a.compare_sim < 0:
+        p.error(f"--compare-sim must be >= 0, got {a.compare_sim}")
+    try:
+        a.video_hw = tuple(int(v) for v in a.video_size.lower().split("x"))
+        assert len(a.video_hw) == 2
+    except (ValueError, AssertionError):
+        p.error(f"--video-size must look like 240x320, got {a.video_size!r}")
+    if not (Path(a.run) / "config.yaml").is_file():
+        p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
+    if a.host is not None and a.perception is None and not a.dry_run:
+        p.error("--host needs --perception module:factory (RGB-only detector and depth): the "
+                "simulator's ground truth exists only in the emulator")
+    return a
+
+
+def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
+    """Refuses to fly a real drone unless confirmed (``--yes`` or typing ``fly``)."""
+    if yes:
+        return
+    print(f"About to FLY A REAL DRONE at {host}. Clear the area, keep a hand near the "
+          "Tello app's emergency stop.")
+    if ask("Type 'fly' to take off: ").strip().lower() != "fly":
+        raise SystemExit("not confirmed: nothing was flown")
+
+
+def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=None):
+    from torchrl.envs import TransformedEnv
+
+    import recipe_utils as ru
+    from omegaconf import OmegaConf
+    from torchrl_causal.envs import TelloEnv
+
+    kw = {}
+    if layout is not None:  # the emulated scene's flight volume, in the take-off frame
+        x0, y0, _ = layout.start_pos
+        xa, ya, xb, yb = layout.arena
+        kw["geofence"] = (xa - x0, ya - y0, xb - x0, yb - y0) if layout.start_yaw_deg == 0 else None
+        kw["max_height"] = float(layout.height)
+    real = args.host is not None
+    env = TelloEnv(
+        tello, detector=detector, depth_estimator=depth, image_size=cfg.env.image_size,
+        fov_deg=args.fov or (55.6 if real else 60.0), reward=cfg.env.reward,
+        max_steps=args.max_steps or cfg.env.max_steps, settle_s=args.settle if args.settle
+        is not None else (0.5 if real else 0.0), command_timeout=7 if real else 3,
+        before_takeoff=before_takeoff, dry_run=args.dry_run, **kw)
+    variant = ru.VARIANTS[cfg.variant]
+    if variant.features:
+        from torchrl_causal.transforms import make_causal_transforms
+
+        options = OmegaConf.to_container(cfg.features.options, resolve=True)
+        options.setdefault("seed", cfg.seed)
+        return env, TransformedEnv(env, make_causal_transforms(env, **options))
+    return env, env
+
+
+def fly(args, policy, tenv, base, emu=None) -> list[dict]:
+    """Greedy episodes; one CSV row each; the onboard video to ``onboard.mp4``."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from torchrl_causal.training import EpisodeCSV
+
+    out = Path(args.out)
+    csv = EpisodeCSV(out / "episodes.csv", CSV_COLUMNS)
+    writer = None if args.no_video else _VideoWriter(out / "onboard.mp4")
+    rows, frames = [], 0
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for ep in range(1, args.episodes + 1):
+            td = tenv.reset()
+            total, length = 0.0, 0
+            if writer is not None and base.last_frame is not None:
+                writer.write(base.last_frame)
+            while True:
+                td = policy(td)
+                td = tenv.step(td)
+                nxt = td["next"]
+                total += float(nxt["reward"])
+                length += 1
+                if writer is not None and base.last_frame is not None:
+                    writer.write(base.last_frame)
+                if bool(nxt["done"]):
+                    break
+                td = nxt
+            frames += length
+            gt = emu.ground_truth() if emu is not None else {}
+            row = {"episode": ep, "frames": frames, "reward": round(total, 4), "length": length,
+                   "success": int(bool(nxt["reached"])), "crash": int(bool(nxt["crashed"])),
+                   "out_of_bounds": int(bool(nxt["out_of_bounds"])),
+                   "success_sim": int(gt["reached"]) if gt else "",
+                   "battery": float(nxt["battery"])}
+            csv.write(row)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    if writer is not None:
+        writer.close()
+    return rows
+
+
+class _VideoWriter:
+    """Frames of any size to an H.264 MP4 (PyAV), resized to the first frame's size."""
+
+    def __init__(self, path: Path, fps: int = 5):
+        self.path, self.fps, self.c, self.s = path, fps, None, None
+
+    def write(self, rgb: np.ndarray):
+        import av
+
+        rgb = np.ascontiguousarray(rgb)
+        if self.c is None:
+            h, w = (rgb.shape[0] // 2) * 2, (rgb.shape[1] // 2) * 2
+            self.c = av.open(str(self.path), "w")
+            self.s = self.c.add_stream("libx264", rate=self.fps)
+            self.s.width, self.s.height, self.s.pix_fmt = w, h, "yuv420p"
+        rgb = rgb[: self.s.height, : self.s.width]
+        if rgb.shape[:2] != (self.s.height, self.s.width):
+            return
+        for p in self.s.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+            self.c.mux(p)
+
+    def close(self):
+        if self.c is not None:
+            for p in self.s.encode():
+                self.c.mux(p)
+            self.c.close()
+
+
+def summarize(rows, key="success"):
+    vals = [r[key] for r in rows if r[key] != ""]
+    if not vals:
+        return None
+    k = int(sum(vals))
+    lo, hi = wilson(k, len(vals))
+    return {"rate": k / len(vals), "n": len(vals), "ci95": [round(lo, 4), round(hi, 4)]}
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    torch.set_num_threads(1)
+    from omegaconf import OmegaConf
+
+    import train as train_recipe
+
+    run = Path(args.run)
+    cfg = OmegaConf.load(run / "config.yaml")
+    real = args.host is not None
+    args.out = args.out or str(run / (f"tello_{args.host}" if real else "tello_emulator"))
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    summary: dict = {"run": str(run), "target": args.host or "emulator",
+                     "episodes": args.episodes}
+    if real:
+        confirm_real_flight(args.host, args.yes or args.dry_run)
+        mod, _, fn = args.perception.partition(":") if args.perception else ("", "", "")
+        detector, depth = (getattr(importlib.import_module(mod), fn)() if mod else
+                           (None, None))
+        if args.dry_run and detector is None:
+            from torchrl_causal.perception.goal import GoalDetector
+
+            class _Blind(GoalDetector):
+                def detect(self, pixels, depth=None, **_):
+                    return torch.zeros(len(pixels), 0, 4), torch.zeros(len(pixels), 0)
+
+            detector, depth = _Blind(), (lambda p: torch.full(p.shape[:3], 10.0))
+        tello = None
+        if not args.dry_run:
+            from djitellopy import Tello
+
+            tello = Tello(host=args.host, retry_count=1)
+
+        def carry_back(_env):
+            if not args.yes and not args.dry_run:
+                input("Put the drone at the start pose, then press Enter: ")
+
+        base, tenv = make_tello_env(args, cfg, tello, detector, depth, carry_back)
+        policy, _, _ = train_recipe.load_policy(run, env=tenv)
+        try:
+            rows = fly(args, policy, tenv, base)
+        finally:
+            base.close()
+    else:
+        from torchrl_causal.envs import TelloEmulator
+
+        layout_opts = train_recipe.ru.SCENES[cfg.env.layout]
+        with TelloEmulator(env_options=dict(layout_opts, seed=cfg.seed), video_size=args.video_hw,
+                           time_scale=args.time_scale, battery_drain_per_min=0.0) as emu:
+            tello = emu.client()
+            base, tenv = make_tello_env(args, cfg, tello, emu.sim_detector(),
+                                        emu.sim_depth_estimator(),
+                                        lambda _env: emu.reset_world(), layout=emu.env.layout)
+            policy, _, _ = train_recipe.load_policy(run, env=tenv)
+            t0 = time.perf_counter()
+            try:
+                rows = fly(args, policy, tenv, base, emu)
+            finally:
+                base.close()
+            summary["wall_s"] = round(time.perf_counter() - t0, 1)
+        summary["success_sim"] = summarize(rows, "success_sim")
+    summary["success"] = summarize(rows)
+    summary["crashes"] = sum(r["crash"] for r in rows)
+    summary["mean_length"] = float(np.mean([r["length"] for r in rows]))
+    if args.compare_sim:
+        from torchrl_causal.training import evaluate
+
+        policy, env, _ = train_recipe.load_policy(run)
+        res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + int(cfg.seed) * 1009,
+                       max_steps=args.max_steps)
+        k = int(round(res["success_rate"] * args.compare_sim))
+        lo, hi = wilson(k, args.compare_sim)
+        summary["dronenav"] = {"rate": res["success_rate"], "n": args.compare_sim,
+                               "ci95": [round(lo, 4), round(hi, 4)],
+                               "mean_length": res["mean_length"]}
+    (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary), flush=True)
+    return summary
+
+
+if __name__ == "__main__":
+    main()
