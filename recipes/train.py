@@ -151,7 +151,9 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
 
     The Q-network comes from ``model.pt`` (the final policy, ``eval.keep_best``'s
     choice) and the explorer (the CBN gate with its compiled tables, or
-    epsilon-greedy) from the checkpoint's snapshot of that same policy.
+    epsilon-greedy) from ``explorer.pt`` (runs older than that file: from the
+    checkpoint's snapshot of the same policy). ``config.yaml``, ``model.pt`` and
+    ``explorer.pt`` are all a policy needs: copy those three to share one.
 
     Args:
         run_dir: a run folder written by :func:`train`.
@@ -169,30 +171,33 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
         env and the run's config.
 
     Raises:
-        FileNotFoundError: the folder has no ``config.yaml``, ``model.pt`` or
-            checkpoint (the run did not finish).
+        FileNotFoundError: the folder has no ``config.yaml``, ``model.pt``, or
+            neither ``explorer.pt`` nor a checkpoint (the run did not finish).
     """
     from tensordict.nn import TensorDictSequential
 
     run_dir = Path(run_dir)
-    need = {"config": run_dir / "config.yaml", "model": run_dir / ru.RUN_LAYOUT["model"],
-            "checkpoint": run_dir / ru.RUN_LAYOUT["checkpoint"]}
-    for what, path in need.items():
+    files = {"config": run_dir / "config.yaml", "model": run_dir / ru.RUN_LAYOUT["model"],
+             "explorer": run_dir / ru.RUN_LAYOUT["explorer"]}
+    if not files["explorer"].is_file():
+        files["explorer"] = run_dir / ru.RUN_LAYOUT["checkpoint"]
+    for what, path in files.items():
         if not path.is_file():
             raise FileNotFoundError(
                 f"run_dir={str(run_dir)!r} has no {what} file {str(path)!r}: is it a finished "
                 "run folder of recipes/train.py?")
-    cfg = OmegaConf.merge(OmegaConf.load(need["config"]),
+    cfg = OmegaConf.merge(OmegaConf.load(files["config"]),
                           OmegaConf.from_dotlist(list(overrides)))
     cfg.device = device
     variant = ru.VARIANTS[cfg.variant]
     if env is None:
         env = build_env(cfg, variant, scene or cfg.env.layout, device)
     actor, explorer, _ = build_agent(cfg, variant, env, device)
-    actor.load_state_dict(torch.load(need["model"], map_location=device, weights_only=False))
-    ckpt = torch.load(need["checkpoint"], map_location=device, weights_only=False)
-    best = ckpt.get("best")
-    explorer.load_state_dict(best["explorer"] if best else ckpt["explorer"])
+    actor.load_state_dict(torch.load(files["model"], map_location=device, weights_only=False))
+    state = torch.load(files["explorer"], map_location=device, weights_only=False)
+    if files["explorer"].name != "explorer.pt":  # a checkpoint: its snapshot of the final policy
+        state = state["best"]["explorer"] if state.get("best") else state["explorer"]
+    explorer.load_state_dict(state)
     return TensorDictSequential(actor, explorer), env, cfg
 
 

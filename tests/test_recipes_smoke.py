@@ -180,12 +180,18 @@ def test_load_policy_reproduces_the_final_evaluation(tmp_path):
     out = tmp_path / "run"
     _run(["--config-name", "cbn_v2", f"output_dir={out}", *TINY, "seed=3"])
     summary = json.loads((out / "summary.json").read_text())
+    assert (out / "explorer.pt").is_file()
+    seed = 10_000_019 + 3 * 1009  # the final evaluation seeds scene i with 10_000_019 + seed * 1009 + i
+    expected = summary["final_eval"]["thesis"]["mean_reward"]
     policy, env, cfg = recipe.load_policy(out, scene="thesis")
     assert cfg.seed == 3 and policy[1].tables is not None  # the gate has its tables
-    # the loop's final evaluation seeds scene i with 10_000_019 + seed * 1009 + i
-    res = evaluate(policy, env, episodes=1, seed=10_000_019 + 3 * 1009)
-    assert res["mean_reward"] == pytest.approx(summary["final_eval"]["thesis"]["mean_reward"],
-                                               abs=1e-4)
+    assert evaluate(policy, env, episodes=1, seed=seed)["mean_reward"] == pytest.approx(expected,
+                                                                                        abs=1e-4)
+    # a run folder without explorer.pt (older runs): the checkpoint's snapshot is used
+    (out / "explorer.pt").unlink()
+    policy, _, _ = recipe.load_policy(out, env=env)
+    assert evaluate(policy, env, episodes=1, seed=seed)["mean_reward"] == pytest.approx(expected,
+                                                                                        abs=1e-4)
     env.close()
     with pytest.raises(FileNotFoundError, match="model"):
         (out / "model.pt").unlink()

@@ -19,7 +19,8 @@ DQN). Per collected frame it
 What a run folder (``output_dir``) holds: ``episodes.csv`` (reward, length,
 success, crash, epsilon, relearns and the gate's branch shares of every
 training episode), ``eval.csv``, ``relearns.csv``, ``checkpoints/last.pt``
-(+ the replay buffer of that checkpoint) and, at the end, ``model.pt``.
+(+ the replay buffer of that checkpoint) and, at the end, ``model.pt`` and
+``explorer.pt`` (the final policy: the actor's and the explorer's states).
 
 **Exact resume.** ``run(resume=True)`` continues from ``checkpoints/last.pt``
 and produces the same run as an uninterrupted one -- also after a
@@ -61,7 +62,8 @@ RUN_FILES = {
     "relearns": "relearns.csv",
     "checkpoint": "checkpoints/last.pt",
     "buffer": "checkpoints/buffer",  # + _<n>: the replay buffer of checkpoint n
-    "model": "model.pt",
+    "model": "model.pt",  # the final policy's actor (Q-network) state
+    "explorer": "explorer.pt",  # ... and its explorer's (the CBN gate with its tables)
 }
 LOSS_FUNCTIONS = ("l2", "smooth_l1", "l1")
 _GATE_BRANCHES = ("explored", "consulted", "vetoed", "replaced")
@@ -745,9 +747,12 @@ class DQNLoop:
             self.actor.load_state_dict(self.best["actor"])
             self.explorer.load_state_dict(self.best["explorer"])
             summary["selected_frames"] = self.best["frames"]
+        # the final policy as evaluated (the explorer's random state before the evaluation)
+        explorer_state = copy.deepcopy(self.explorer.state_dict())
         summary["final_eval"] = self.final_evaluation()
         if self.paths is not None:
             torch.save(self.actor.state_dict(), self.paths["model"])
+            torch.save(explorer_state, self.paths["explorer"])
             summary["model"] = str(self.paths["model"])
         return summary
 
