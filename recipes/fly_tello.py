@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import math
 import os
 import sys
 import time
@@ -41,25 +40,11 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from results import wilson  # noqa: E402
+
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
                "success_sim", "battery"]
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a success rate (sensible at 0 and 1, unlike Wald).
-
-    Example:
-        >>> [round(v, 3) for v in wilson(10, 10)]
-        [0.722, 1.0]
-    """
-    if n == 0:
-        return (float("nan"), float("nan"))
-    p = successes / n
-    den = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / den
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return (max(0.0, c - h), min(1.0, c + h))
 
 
 def parse_args(argv=None):

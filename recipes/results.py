@@ -16,6 +16,7 @@ without re-training:
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -30,6 +31,7 @@ import yaml  # noqa: E402
 __all__ = [
     "moving_average",
     "mean_ci95",
+    "wilson",
     "load_episodes",
     "load_runs",
     "stack_curves",
@@ -105,6 +107,22 @@ def mean_ci95(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         half = stats.t.ppf(0.975, np.maximum(n - 1, 1)) * sd / np.sqrt(np.maximum(n, 1))
     half[n < 2] = np.nan
     return mean, half
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate (sensible at 0 and 1, unlike Wald).
+
+    Example:
+        >>> [round(v, 3) for v in wilson(10, 10)]
+        [0.722, 1.0]
+    """
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    den = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / den
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, c - h), min(1.0, c + h))
 
 
 def plot_reward_curves(
