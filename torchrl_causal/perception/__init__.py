@@ -30,6 +30,7 @@ _LAZY = {
     "write_datasets": "torchrl_causal.perception.dataset",
     "load_views": "torchrl_causal.perception.dataset",
     "evaluate_detector": "torchrl_causal.perception.dataset",
+    "YoloGoalDetector": "torchrl_causal.perception.yolo",
 }
 __all__ += list(_LAZY)
 

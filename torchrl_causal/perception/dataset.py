@@ -571,7 +571,8 @@ def load_views(root: str | os.PathLike, split: str) -> list[View]:
             f"{path} does not exist: write it with "
             "`python -m torchrl_causal.perception.dataset --out DIR ...`"
         )
-    z = np.load(path)
+    with np.load(path) as f:  # (every f[key] decompresses the whole array: read each once)
+        z = {k: f[k] for k in ("rgb", "depth", "layout", "box", "goal_pixels")}
     out = []
     for k in range(len(z["layout"])):
         b = z["box"][k]
