@@ -2,7 +2,9 @@
 
 Used by ``tests/test_training.py``, which SIGKILLs it mid-run and resumes it::
 
-    python tests/kill_resume_worker.py <output_dir> [--resume] [--frames N]
+    python tests/kill_resume_worker.py <output_dir> [--resume] [--frames N] [--overlap]
+
+(``--overlap``: ``LoopConfig.overlap=True``, used by ``tests/test_training_overlap.py``.)
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import json
 import sys
 
 
-def build_loop(output_dir, frames: int, seed: int = 0):
+def build_loop(output_dir, frames: int, seed: int = 0, overlap: bool = False):
     import torch
     from torchrl.envs import GymEnv, TransformedEnv
     from torchrl.modules import MLP, QValueActor
@@ -44,7 +46,7 @@ def build_loop(output_dir, frames: int, seed: int = 0):
                         target_update_interval=50, eval_interval_frames=frames // 4,
                         eval_episodes=2, final_eval_episodes=2, eval_max_steps=50,
                         checkpoint_interval_frames=150,
-                        buffer_size=frames, seed=seed)
+                        buffer_size=frames, seed=seed, overlap=overlap)
     return DQNLoop(env, actor, gate, hook=hook, config=config, output_dir=output_dir,
                    eval_envs={"cartpole": make_env},
                    outcome_keys={"success": "truncated", "crash": "terminated"})
@@ -57,9 +59,10 @@ def main(argv=None):
     p.add_argument("output_dir")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--frames", type=int, default=1200)
+    p.add_argument("--overlap", action="store_true")
     args = p.parse_args(argv)
     torch.set_num_threads(1)  # same arithmetic in every process
-    summary = build_loop(args.output_dir, args.frames).run(resume=args.resume)
+    summary = build_loop(args.output_dir, args.frames, overlap=args.overlap).run(resume=args.resume)
     print(json.dumps({k: summary[k] for k in ("frames", "episodes", "updates", "n_relearns")}))
     return 0
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from dataclasses import dataclass
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -46,6 +47,10 @@ import numpy as np  # noqa: E402
 from .layouts import DRONE_HALF_EXTENTS, Layout, Obstacle  # noqa: E402
 
 __all__ = ["build_model", "helipad_image", "SceneIds", "SceneRenderer", "DRONE_MASS"]
+
+# GL contexts of a closed renderer that were current in another (live) thread:
+# freeing them here would delete objects of this thread's context instead
+_UNFREED: list = []
 
 #: Mass of the drone (kg).
 DRONE_MASS = 0.5
@@ -337,6 +342,12 @@ class SceneRenderer:
     model (new layout) without creating a new context. Output buffers are
     allocated once and overwritten by every call; copy them if you keep them.
 
+    Thread-aware: an EGL context is bound to one thread, so the first call from
+    another thread (e.g. a collector's worker thread stepping an env that was
+    reset in the main thread) builds a context for that thread, once, and the
+    renderer switches between the threads' contexts after that; frames are the
+    same from any thread. Calls must not run in two threads at the same time.
+
     Args:
         model: the compiled model (its off-screen buffer must be >= the image).
         height: image height.
@@ -359,11 +370,17 @@ class SceneRenderer:
     def __init__(self, model, height: int, width: int, camera: int, max_depth: float = 10.0):
         from mujoco import gl_context
 
+        self._gl_factory = gl_context.GLContext
         self.height, self.width = int(height), int(width)
         self.max_depth = float(max_depth)
-        self._gl = gl_context.GLContext(self.width, self.height)
+        self._thread = threading.get_ident()
+        self._gl = self._gl_factory(self.width, self.height)
         self._gl.make_current()
         self._ctx = None
+        # contexts of other threads that rendered: {thread id: (gl, ctx, model version)}
+        self._other_threads: dict[int, tuple] = {}
+        self._model_version = 0
+        self._ctx_version = 0
         self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -376,17 +393,42 @@ class SceneRenderer:
         self._zbuf = np.empty((self.height, self.width), np.float32)
         self.set_model(model, camera)
 
-    def set_model(self, model, camera: int):
-        """Switches to a new model (keeps the GL context)."""
+    def _current(self) -> None:
+        """Makes this thread's GL context current (built here once, on first use).
+
+        An EGL context can be current in one thread only: a renderer used from
+        a thread other than the one that built it gets a GL + MuJoCo render
+        context of its own for that thread (kept for the thread's next calls;
+        the other thread's context stays with it). The contexts render the same
+        model with the same settings, so the frames are the same.
+        """
+        ident = threading.get_ident()
+        if ident != self._thread:
+            self._other_threads[self._thread] = (self._gl, self._ctx, self._ctx_version)
+            self._gl, self._ctx, self._ctx_version = self._other_threads.pop(
+                ident, (None, None, -1))
+            self._thread = ident
+            if self._gl is None:
+                self._gl = self._gl_factory(self.width, self.height)
         self._gl.make_current()
+        if self._ctx_version != self._model_version:  # a model set in another thread
+            self._make_ctx()
+
+    def _make_ctx(self) -> None:
         if self._ctx is not None:
             self._ctx.free()
-        self.model = model
-        self._segid_cache = {}
-        self._scene = mujoco.MjvScene(model=model, maxgeom=max(64, 4 * model.ngeom))
-        self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50.value)
+        self._ctx = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_50.value)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
         self._ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._ctx_version = self._model_version
+
+    def set_model(self, model, camera: int):
+        """Switches to a new model (keeps the GL context)."""
+        self.model = model
+        self._model_version += 1
+        self._current()  # (re)builds this thread's MuJoCo render context for the model
+        self._segid_cache = {}
+        self._scene = mujoco.MjvScene(model=model, maxgeom=max(64, 4 * model.ngeom))
         self._cam.fixedcamid = int(camera)
         extent = model.stat.extent
         znear = np.float32(model.vis.map.znear * extent)
@@ -398,7 +440,7 @@ class SceneRenderer:
 
     def render(self, data) -> tuple[np.ndarray, np.ndarray]:
         """Renders the camera view; returns the (reused) ``rgb`` and ``depth`` buffers."""
-        self._gl.make_current()
+        self._current()
         mujoco.mjv_updateScene(
             self.model, data, self._opt, self._pert, self._cam,
             mujoco.mjtCatBit.mjCAT_ALL.value, self._scene,
@@ -419,7 +461,7 @@ class SceneRenderer:
 
         Re-renders the scene of the last :meth:`render` call in segmentation mode.
         """
-        self._gl.make_current()
+        self._current()
         scn = self._scene
         flags = scn.flags
         flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
@@ -465,16 +507,27 @@ class SceneRenderer:
         return segids
 
     def close(self):
-        """Frees the GL resources (idempotent)."""
+        """Frees the GL resources (idempotent).
+
+        A context still current in another live thread cannot be freed from
+        this one; it is kept (not freed) rather than freed in the wrong context.
+        """
+        contexts = list(self._other_threads.values()) if hasattr(self, "_other_threads") else []
+        self._other_threads = {}
         if getattr(self, "_gl", None) is not None:
+            contexts.append((self._gl, self._ctx, None))
+            self._gl, self._ctx = None, None
+        for gl, ctx, _ in contexts:
+            if gl is None:
+                continue
             try:
-                self._gl.make_current()
-                if self._ctx is not None:
-                    self._ctx.free()
-            finally:
-                self._ctx = None
-                self._gl.free()
-                self._gl = None
+                gl.make_current()
+            except Exception:  # current in another thread: leave it there
+                _UNFREED.append((gl, ctx))
+                continue
+            if ctx is not None:
+                ctx.free()
+            gl.free()
 
     def __del__(self):
         try:

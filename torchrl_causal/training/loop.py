@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import random
 import shutil
@@ -105,6 +106,10 @@ class LoopConfig:
             finished run keeps none, and its disk holds one buffer at most -- a
             memmap storage's own files).
         seed: seeds torch, NumPy, Python, the env, its transforms and the evaluations.
+        overlap: collect the next batch in a worker thread while the main thread
+            optimises on the last one (opt-in; see :class:`DQNLoop`). The acting
+            policy then lags the learner by one batch: a semantic change against
+            thesis Alg. 1, deterministic and exactly resumable like the default.
         device: where the network, the buffer samples and the gate run
             (the env stays where it is).
         progress: show a tqdm bar.
@@ -147,6 +152,7 @@ class LoopConfig:
     seed: int = 0
     device: str = "cpu"
     progress: bool = False
+    overlap: bool = False
 
     def __post_init__(self):
         def bad(name, expected):
@@ -185,7 +191,7 @@ class LoopConfig:
             bad("max_grad_norm", "None or a number > 0")
         if self.loss_function not in LOSS_FUNCTIONS:
             bad("loss_function", f"one of {LOSS_FUNCTIONS}")
-        for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer"):
+        for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer", "overlap"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "True or False")
         try:
@@ -261,6 +267,15 @@ def _peak_rss_mb() -> float | None:
         return None
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return round(kb / 1024.0, 1)
+
+
+def _storage_device(replay_buffer) -> torch.device:
+    """Where a replay buffer's storage samples its indices (its generator's device)."""
+    dev = getattr(getattr(replay_buffer, "_storage", None), "device", None)
+    try:
+        return torch.device(dev) if dev not in (None, "auto") else torch.device("cpu")
+    except (RuntimeError, TypeError):
+        return torch.device("cpu")
 
 
 def _num_envs(env) -> int:
@@ -391,6 +406,24 @@ class DQNLoop:
         if hook is not None and not any(t is hook for t in present):
             replay_buffer.append_transform(hook)  # once, also when the buffer already has it
         self.replay_buffer = replay_buffer
+        self._acting_actor, self._rb_rng, self._synced_at = None, None, None
+        self.collector_policy = self.policy
+        self._loss_forward = loss
+        if cfg.overlap:
+            # TorchRL's LossModule.forward sets the process-global exploration type
+            # (DETERMINISTIC) while it runs: beside a worker thread whose explorer reads
+            # that global, the loop calls the loss's own forward (for a DQN loss on a
+            # feed-forward Q-network, the same arithmetic)
+            raw = getattr(type(loss).forward, "__wrapped__", None)
+            if raw is not None:
+                self._loss_forward = functools.partial(raw, loss)
+            # the worker thread acts with its own copy of the Q-network (the main
+            # thread updates the learner's in place meanwhile) and the buffer samples
+            # with its own generator (the worker may draw from the global RNG)
+            self._acting_actor = copy.deepcopy(actor).requires_grad_(False)
+            self.collector_policy = TensorDictSequential(self._acting_actor, explorer)
+            self._rb_rng = torch.Generator(device=_storage_device(replay_buffer))
+            replay_buffer.set_rng(self._rb_rng)
         self.eval_envs = dict(eval_envs or {})
         self.logger = logger
         self.outcome_keys = {**OUTCOME_KEYS, **(outcome_keys or {})}
@@ -405,6 +438,7 @@ class DQNLoop:
             "next_ckpt": cfg.checkpoint_interval_frames or math.inf,
             "n_ckpt": 0, "n_relearns": 0, "n_evals": 0, "successes": [],
             "time_extend": 0.0, "time_train": 0.0, "time_collect": 0.0,
+            "time_collect_worker": 0.0,
         }
         self._episodes = [self._new_episode() for _ in range(self.num_envs)]
 
@@ -470,6 +504,9 @@ class DQNLoop:
             "rng": rng_state(),
             "best": self.best,
             "config": dataclasses.asdict(self.config),
+            "acting_actor": (self._acting_actor.state_dict()
+                             if self._acting_actor is not None else None),
+            "buffer_rng": self._rb_rng.get_state() if self._rb_rng is not None else None,
         }
 
     def _save_checkpoint(self, final: bool = False) -> None:
@@ -497,6 +534,13 @@ class DQNLoop:
                 "checkpoint keeps no replay buffer (LoopConfig.keep_final_buffer=False); start a "
                 "new run, or set keep_final_buffer=True to extend finished runs later"
             )
+        was_overlap = ckpt.get("config", {}).get("overlap", False)
+        if was_overlap != self.config.overlap:
+            raise ValueError(
+                f"Cannot resume from {self.paths['checkpoint']} with LoopConfig.overlap="
+                f"{self.config.overlap}: the run was written with overlap={was_overlap} "
+                "(resume with the same setting)"
+            )
         self.state.update(ckpt["loop"])
         self._episodes = ckpt["episodes"]
         self.loss.load_state_dict(ckpt["loss"])
@@ -517,6 +561,11 @@ class DQNLoop:
                 self.logger, "load_state_dict"):
             self.logger.load_state_dict(ckpt["logger"])
         set_rng_state(ckpt["rng"])
+        if self._acting_actor is not None:
+            self._acting_actor.load_state_dict(ckpt["acting_actor"])
+            self._synced_at = None
+            self._rb_rng.set_state(ckpt["buffer_rng"])
+            self.replay_buffer.set_rng(self._rb_rng)
         self.best = ckpt["best"]
 
     def _restart_collector(self) -> None:
@@ -583,7 +632,7 @@ class DQNLoop:
             sample = rb.sample(cfg.batch_size).to(self.device)
             if cfg.reward_scale != 1.0:  # the loss sees scaled rewards; the env's stay as defined
                 sample.set(("next", "reward"), sample.get(("next", "reward")) * cfg.reward_scale)
-            loss_td = self.loss(sample)
+            loss_td = self._loss_forward(sample)
             loss_td["loss"].backward()
             if cfg.max_grad_norm is not None:
                 torch.nn.utils.clip_grad_norm_(self.loss.parameters(), cfg.max_grad_norm)
@@ -594,6 +643,150 @@ class DQNLoop:
             if self.logger is not None and st["updates"] % 100 == 0:
                 self.logger.log_scalar("train/loss", float(loss_td["loss"].detach()),
                                        step=st["frames"])
+
+    def _ingest(self, batch) -> tuple[int, bool]:
+        """A collected batch: frames, epsilon step, buffer (+ hook: Alg. 2), episode rows.
+
+        Returns the batch's frame count and whether it ends at an episode end
+        (always True with several envs: checkpoints then cut episodes in flight).
+        """
+        st = self.state
+        batch = batch.reshape(self.num_envs, -1)  # [envs, time]
+        n = batch.numel()
+        st["frames"] += n
+        self.explorer.step(n)  # the gate's (or egreedy's) epsilon schedule
+        t0 = time.perf_counter()
+        self.replay_buffer.extend(batch.reshape(-1).select(*self.store_keys))  # + hook: Alg. 2
+        st["time_extend"] += time.perf_counter() - t0
+        if self.hook is not None and self.hook.learner.n_relearns > st["n_relearns"]:
+            st["n_relearns"] = self.hook.learner.n_relearns
+            self._recs[2].write({"relearn": st["n_relearns"], "frames": st["frames"],
+                                 "episode": st["episodes"] + 1})
+        at_episode_end = self._record_episodes(batch) or self.num_envs > 1
+        return n, at_episode_end
+
+    def _finished(self) -> bool:
+        cfg, st = self.config, self.state
+        return st["frames"] >= cfg.total_frames or st["episodes"] >= (cfg.total_episodes
+                                                                      or math.inf)
+
+    def _after_update(self, n: int, at_episode_end: bool, pbar) -> tuple[bool, bool]:
+        """Progress, periodic evaluation, checkpoint. Returns (end the loop, stopped early)."""
+        cfg, st = self.config, self.state
+        if pbar is not None:
+            pbar.update(n)
+            sr = np.mean(st["successes"]) if st["successes"] else float("nan")
+            pbar.set_postfix(ep=st["episodes"], reward=f"{self._last_reward:.1f}",
+                             success=f"{sr:.2f}", eps=f"{float(self.explorer.eps):.2f}",
+                             refresh=False)
+        finished = self._finished()
+        if st["frames"] >= st["next_eval"] or finished:
+            self._periodic_eval()
+            while st["next_eval"] <= st["frames"]:
+                st["next_eval"] += cfg.eval_interval_frames or math.inf
+        if (st["frames"] >= st["next_ckpt"] and at_episode_end) or finished:
+            st["n_ckpt"] += 1
+            while st["next_ckpt"] <= st["frames"]:
+                st["next_ckpt"] += cfg.checkpoint_interval_frames or math.inf
+            self._save_checkpoint(final=finished)
+            if not finished:
+                self._restart_collector()
+            if (cfg.stop_after_frames is not None and not finished
+                    and st["frames"] >= cfg.stop_after_frames):
+                return True, True
+        return finished, False
+
+    def _run_serial(self, collector, pbar) -> bool:
+        """Alg. 1 as the thesis has it: collect a batch, store it, optimise, repeat."""
+        st = self.state
+        t_last = time.perf_counter()
+        for batch in collector:
+            st["time_collect"] += time.perf_counter() - t_last
+            n, at_episode_end = self._ingest(batch)
+            t0 = time.perf_counter()
+            self._optimise(n)
+            st["time_train"] += time.perf_counter() - t0
+            end, stopped_early = self._after_update(n, at_episode_end, pbar)
+            if end:
+                return stopped_early
+            t_last = time.perf_counter()
+        return False
+
+    def _must_drain(self, at_episode_end: bool) -> bool:
+        """Whether the batch just stored is followed by an evaluation, a checkpoint or the end.
+
+        The pipeline then collects nothing ahead: evaluations use the explorer and
+        the global exploration mode, and checkpoints reseed and reset the env,
+        with the worker idle.
+        """
+        cfg, st = self.config, self.state
+        if self._finished():
+            return True
+        if st["frames"] >= st["next_eval"] and cfg.eval_episodes > 0 and self.eval_envs:
+            return True
+        return st["frames"] >= st["next_ckpt"] and at_episode_end
+
+    def _sync_acting(self) -> None:
+        """The acting copy takes the learner's Q-network weights (when they changed)."""
+        if self._synced_at != self.state["updates"]:
+            self._acting_actor.load_state_dict(self.actor.state_dict())
+            self._synced_at = self.state["updates"]
+
+    def _run_overlapped(self, collector, pbar) -> bool:
+        """A two-stage pipeline: a worker thread collects batch i+1 while this thread
+        optimises on batch i.
+
+        Per batch i: (a) wait for batch i from the worker; (b) store it (the hook
+        relearns and swaps the gate's tables here, while the worker is idle);
+        (c) copy the learner's weights into the acting copy and step epsilon
+        (done in (b)); (d) start the worker on batch i+1 -- unless an evaluation,
+        a checkpoint or the end follows batch i (then the pipeline drains);
+        (e) optimise for batch i's frames. Batch i+1 is thus collected with the
+        weights from before batch i's updates: the acting policy lags one batch.
+        The worker alone draws from the global RNG (explorer, random frames,
+        env); the buffer samples with its own generator, so runs are
+        deterministic and resume exactly.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        st = self.state
+        batches = iter(collector)
+
+        def collect():
+            t0 = time.perf_counter()
+            batch = next(batches)
+            return batch, time.perf_counter() - t0
+
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="DQNLoop-collector")
+        future = None
+        try:
+            future = pool.submit(collect)
+            while True:
+                t0 = time.perf_counter()
+                batch, worker_seconds = future.result()  # (a)
+                future = None
+                st["time_collect"] += time.perf_counter() - t0
+                st["time_collect_worker"] += worker_seconds
+                n, at_episode_end = self._ingest(batch)  # (b), epsilon step
+                del batch
+                self._sync_acting()  # (c)
+                if not self._must_drain(at_episode_end):
+                    future = pool.submit(collect)  # (d)
+                t0 = time.perf_counter()
+                self._optimise(n)  # (e), beside (d)
+                st["time_train"] += time.perf_counter() - t0
+                end, stopped_early = self._after_update(n, at_episode_end, pbar)
+                if end:
+                    return stopped_early
+                if future is None:  # drained for an evaluation / checkpoint
+                    future = pool.submit(collect)
+        finally:
+            if future is not None:  # an error here: let the worker finish its batch
+                try:
+                    future.result()
+                except Exception:  # noqa: BLE001 - the main thread's error is raised
+                    pass
+            pool.shutdown(wait=True)
 
     def _periodic_eval(self) -> None:
         cfg, st = self.config, self.state
@@ -654,12 +847,16 @@ class DQNLoop:
         self.env.set_seed(cfg.seed)
         seed_transforms(self.env, cfg.seed)
         self._collector = collector = Collector(
-            self.env, self.policy, frames_per_batch=cfg.frames_per_batch, total_frames=-1,
+            self.env, self.collector_policy, frames_per_batch=cfg.frames_per_batch, total_frames=-1,
             init_random_frames=cfg.init_random_frames or None, device=self.device,
             # the policy is feed-forward: the collector must not add env transforms
             auto_register_policy_transforms=False,
         )
         self._recs = self._records()
+        if cfg.overlap:  # a resumed run loads both from its checkpoint
+            self._rb_rng.manual_seed(cfg.seed * 1_000_003 + 12_345)
+            self._synced_at = None
+            self._sync_acting()
         if resume:
             self._load_checkpoint()
             self._restart_collector()
@@ -675,51 +872,11 @@ class DQNLoop:
         frames0, t_start = st["frames"], time.perf_counter()
         self._last_reward = float("nan")
         stopped_early = False
-        total_episodes = cfg.total_episodes or math.inf
         try:
-            t_last = time.perf_counter()
-            for batch in collector:
-                st["time_collect"] += time.perf_counter() - t_last
-                batch = batch.reshape(self.num_envs, -1)  # [envs, time]
-                n = batch.numel()
-                st["frames"] += n
-                self.explorer.step(n)  # the gate's (or egreedy's) epsilon schedule
-                t0 = time.perf_counter()
-                self.replay_buffer.extend(batch.reshape(-1).select(*self.store_keys))  # + hook: Alg. 2
-                st["time_extend"] += time.perf_counter() - t0
-                if hook is not None and hook.learner.n_relearns > st["n_relearns"]:
-                    st["n_relearns"] = hook.learner.n_relearns
-                    self._recs[2].write({"relearn": st["n_relearns"], "frames": st["frames"],
-                                         "episode": st["episodes"] + 1})
-                at_episode_end = self._record_episodes(batch) or self.num_envs > 1
-                t0 = time.perf_counter()
-                self._optimise(n)
-                st["time_train"] += time.perf_counter() - t0
-                if pbar is not None:
-                    pbar.update(n)
-                    sr = np.mean(st["successes"]) if st["successes"] else float("nan")
-                    pbar.set_postfix(ep=st["episodes"], reward=f"{self._last_reward:.1f}",
-                                     success=f"{sr:.2f}", eps=f"{float(self.explorer.eps):.2f}",
-                                     refresh=False)
-                finished = st["frames"] >= cfg.total_frames or st["episodes"] >= total_episodes
-                if st["frames"] >= st["next_eval"] or finished:
-                    self._periodic_eval()
-                    while st["next_eval"] <= st["frames"]:
-                        st["next_eval"] += cfg.eval_interval_frames or math.inf
-                if (st["frames"] >= st["next_ckpt"] and at_episode_end) or finished:
-                    st["n_ckpt"] += 1
-                    while st["next_ckpt"] <= st["frames"]:
-                        st["next_ckpt"] += cfg.checkpoint_interval_frames or math.inf
-                    self._save_checkpoint(final=finished)
-                    if not finished:
-                        self._restart_collector()
-                    if (cfg.stop_after_frames is not None and not finished
-                            and st["frames"] >= cfg.stop_after_frames):
-                        stopped_early = True
-                        break
-                if finished:
-                    break
-                t_last = time.perf_counter()
+            if cfg.overlap:
+                stopped_early = self._run_overlapped(collector, pbar)
+            else:
+                stopped_early = self._run_serial(collector, pbar)
         finally:
             if pbar is not None:
                 pbar.close()
@@ -735,7 +892,10 @@ class DQNLoop:
             "loop_seconds": wall,
             "loop_frames_per_second": (st["frames"] - frames0) / wall if wall > 0 else None,
             "optimisation_seconds": st["time_train"],
-            "collection_seconds": st["time_collect"],  # policy (incl. gate) + env + features
+            # policy (incl. gate) + env + features; with overlap: the main thread's wait
+            "collection_seconds": st["time_collect"],
+            # with overlap: the worker thread's time collecting (beside the optimisation)
+            "worker_collection_seconds": st["time_collect_worker"],
             "causal_learning_seconds": (hook.stats["add_seconds"] + hook.stats["relearn_seconds"]
                                         - causal0) if hook is not None else 0.0,
             "gating_seconds": gate_timer.seconds if gate_timer is not None else 0.0,
