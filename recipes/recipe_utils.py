@@ -193,6 +193,9 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
         _require(fpb % n_envs == 0, "collector.frames_per_batch", fpb,
                  f"a multiple of env.num_envs={n_envs} (each batch steps every env alike), "
                  f"e.g. collector.frames_per_batch={n_envs}")
+    overlap = _get(cfg, "collector.overlap", False)
+    _require(isinstance(overlap, bool), "collector.overlap", overlap,
+             "true (collect beside the optimisation, in a worker thread) or false")
     par = _get(cfg, "env.parallel", False)
     _require(isinstance(par, bool), "env.parallel", par, "true (ParallelEnv) or false (SerialEnv)")
     lr = _get(cfg, "optim.lr")

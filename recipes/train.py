@@ -216,7 +216,7 @@ def loop_config(cfg: DictConfig, variant: ru.Variant):
         final_eval_episodes=cfg.eval.final_episodes, keep_best=cfg.eval.keep_best,
         checkpoint_interval_frames=cfg.checkpoint.interval_frames,
         stop_after_frames=cfg.checkpoint.stop_after_frames, seed=cfg.seed, device=cfg.device,
-        progress=cfg.progress,
+        progress=cfg.progress, overlap=cfg.collector.get("overlap", False),
     )
 
 

@@ -133,3 +133,24 @@ def test_overlap_bad_input_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"LoopConfig\.overlap=True.*written with overlap=False"):
         tt._gridnav_loop(tmp_path / "run", 400, overlap=True, **opts).run(resume=True)
     assert len(pd.read_csv(tmp_path / "run" / "episodes.csv")) > 0  # nothing was cut
+
+
+def test_recipe_option_collector_overlap(tmp_path):
+    """``collector.overlap`` reaches the loop; a bad value is named before any build; a
+    short drone run (dqn_image: pixels, the thesis CNN) trains with it."""
+    import test_recipes as tr
+
+    out = tmp_path / "bad"
+    with pytest.raises(ValueError, match=r"Invalid option collector\.overlap='maybe'"):
+        tr.train.train(tr._cfg("dqn_image", [f"output_dir={out}", "collector.overlap=maybe"]))
+    assert not (out / "config.yaml").exists()
+    cfg = tr._cfg("dqn_image", [
+        f"output_dir={tmp_path / 'run'}", "collector.overlap=true", "collector.total_frames=100",
+        "loss.learning_starts=50", "loss.target_update_interval=10", "eval.interval_frames=0",
+        "eval.final_episodes=0", "env.eval_layouts=[thesis]", "env.max_steps=40",
+        "checkpoint.interval_frames=0", "logger.backend=none", "progress=false",
+        "outputs.draw_cbns=false", "threads=1"])
+    assert tr.train.loop_config(cfg, tr.ru.VARIANTS["dqn_image"]).overlap is True
+    summary = tr.train.train(cfg)
+    assert summary["frames"] == 100 and summary["updates"] > 0
+    assert summary["worker_collection_seconds"] > 0
