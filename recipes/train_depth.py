@@ -13,7 +13,7 @@ The shipped weights were made with::
 
     python -m torchrl_causal.perception.dataset --out outputs/depth_data \\
         --n-train 6000 --n-val 300 --n-test 300 --seed 0
-    python recipes/train_depth.py --data outputs/depth_data --epochs 20 --threads 1
+    python recipes/train_depth.py --data outputs/depth_data --epochs 12 --threads 1
 
 Checkpoints go to ``--run-dir`` after every epoch (``last.pt``); ``--resume``
 continues an interrupted run from there (same options).
@@ -56,7 +56,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", default=str(DEFAULT_WEIGHTS), help="weights file to write (+ .json sidecar)")
     p.add_argument("--run-dir", default="outputs/depth_run", help="checkpoints and history")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
-    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--epochs", type=int, default=12)
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
@@ -315,6 +315,13 @@ def main(argv=None) -> dict:
             "layout_seed": data_meta.get("layout_seed"),
             "data_seed": data_meta.get("seed"),
             "limit_train": a.limit_train,
+            "dataset_command": (
+                f"python -m torchrl_causal.perception.dataset --out {root} "
+                + " ".join(f"--n-{k} {v}" for k, v in data_meta["counts"].items())
+                + f" --seed {data_meta.get('seed')} --layout-seed {data_meta.get('layout_seed')} "
+                + "--image-size {} {}".format(*train["image_size"])
+                if "counts" in data_meta else None
+            ),
             "test_84x84": (
                 f"render_views('test', {a.n_test_84}, seed={int(data_meta.get('seed', 0)) + 1}, "
                 f"image_size=(84, 84), layout_seed={int(data_meta.get('layout_seed', 0))})"
@@ -333,7 +340,7 @@ def main(argv=None) -> dict:
         "metrics": {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
                     for k, m in metrics.items()},
         "ms_per_frame_cpu": timing,
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),
         "history": state["history"],
     }
     out = est.save(a.out, meta={k: v for k, v in sidecar.items() if k != "history"})
