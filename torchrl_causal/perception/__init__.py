@@ -31,6 +31,8 @@ _LAZY = {
     "load_views": "torchrl_causal.perception.dataset",
     "evaluate_detector": "torchrl_causal.perception.dataset",
     "YoloGoalDetector": "torchrl_causal.perception.yolo",
+    "MonoDepth": "torchrl_causal.perception.depth",
+    "evaluate_depth": "torchrl_causal.perception.depth",
 }
 __all__ += list(_LAZY)
 
