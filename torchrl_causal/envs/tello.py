@@ -103,19 +103,42 @@ atexit.register(_land_all_at_exit)
 
 
 class TelloError(RuntimeError):
-    """Base class of the errors of :class:`TelloEnv` (the drone is landed when they propagate)."""
+    """Base class of the errors of :class:`TelloEnv` (the drone is landed when they propagate).
+
+    Example:
+        >>> try:
+        ...     raise TelloSafetyError("battery 12 % is below the take-off floor 30 %")
+        ... except TelloError as err:
+        ...     print(type(err).__name__, "-", err)
+        TelloSafetyError - battery 12 % is below the take-off floor 30 %
+    """
 
 
 class TelloCommandError(TelloError):
-    """A command failed after its retries (the message names the command and the last reply)."""
+    """A command failed after its retries (the message names the command and the last reply).
+
+    Example:
+        >>> issubclass(TelloCommandError, TelloError), issubclass(TelloCommandError, RuntimeError)
+        (True, True)
+    """
 
 
 class TelloSafetyError(TelloError):
-    """A safety rule refused to fly (e.g. battery below the take-off floor)."""
+    """A safety rule refused to fly (e.g. battery below the take-off floor).
+
+    Example:
+        >>> str(TelloSafetyError("height 2.6 m above max_height=2.5"))
+        'height 2.6 m above max_height=2.5'
+    """
 
 
 class TelloVideoError(TelloError):
-    """No fresh video frame within ``frame_timeout``."""
+    """No fresh video frame within ``frame_timeout``.
+
+    Example:
+        >>> issubclass(TelloVideoError, TelloError)
+        True
+    """
 
 
 def _num(name, value, low=None, strict=False):
