@@ -4,16 +4,19 @@
 
     python recipes/fly_tello.py --run outputs/make_train --episodes 10
     python recipes/fly_tello.py --run outputs/make_train --episodes 10 --compare-sim 10
-    python recipes/fly_tello.py --run outputs/make_train --host 192.168.10.1 \\
-        --perception mypkg.perception:build      # asks for confirmation (or --yes)
+    python recipes/fly_tello.py --run outputs/make_train --host 192.168.10.1
+                                                 # asks for confirmation (or --yes)
 
 The policy (Q-network, CBN gate with its tables) is rebuilt from the run folder
 by ``recipes/train.py``'s :func:`load_policy`; the env is a
 :class:`torchrl_causal.envs.TelloEnv` (with the run's feature stack for CBN
-variants). Against the :class:`~torchrl_causal.envs.TelloEmulator` the goal
-detector and the depth come from the simulator's ground truth (a test aid);
-a real drone needs RGB-only perception: ``--perception module:factory``, a
-callable returning ``(detector, depth_estimator)``.
+variants). Perception is RGB-only by default (``--perception rgb``): the
+shipped YOLOv8 goal detector and ``MonoDepth`` see the decoded video, on the
+emulator as on a real drone. ``--perception sim`` (emulator only) uses the
+simulator's ground truth instead (a test aid); ``--perception module:factory``
+names a callable returning ``(detector, depth_estimator)``. ``--noise`` adds
+move and turn noise to the emulated drone (and to the ``--compare-sim`` runs),
+so that episodes differ and the success rates' intervals mean something.
 
 Writes to ``--out`` (default ``<run>/tello_<emulator|host>``): ``episodes.csv``
 (the training loop's columns that apply: episode, frames, reward, length,
@@ -54,8 +57,11 @@ def parse_args(argv=None):
     p.add_argument("--host", default=None,
                    help=f"a real drone's address (e.g. {REAL_HOST_DEFAULT}); default: the emulator")
     p.add_argument("--yes", action="store_true", help="skip the real-drone confirmation prompt")
-    p.add_argument("--perception", default=None,
-                   help="module:factory returning (detector, depth_estimator) (real drone)")
+    p.add_argument("--perception", default="rgb",
+                   help="rgb (shipped YOLOv8 + MonoDepth, default) | sim (emulator ground truth) "
+                        "| module:factory returning (detector, depth_estimator)")
+    p.add_argument("--noise", action="store_true",
+                   help="emulator and --compare-sim: move noise 0.05 m, turn noise 3 deg")
     p.add_argument("--out", default=None)
     p.add_argument("--max-steps", type=int, default=None, help="default: the run's env.max_steps")
     p.add_argument("--compare-sim", type=int, default=0,
@@ -80,9 +86,11 @@ def parse_args(argv=None):
         p.error(f"--video-size must look like 240x320, got {a.video_size!r}")
     if not (Path(a.run) / "config.yaml").is_file():
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
-    if a.host is not None and a.perception is None and not a.dry_run:
-        p.error("--host needs --perception module:factory (RGB-only detector and depth): the "
-                "simulator's ground truth exists only in the emulator")
+    if a.perception not in ("rgb", "sim") and ":" not in a.perception:
+        p.error(f"--perception must be rgb, sim or module:factory, got {a.perception!r}")
+    if a.host is not None and a.perception == "sim":
+        p.error("--perception sim exists only in the emulator: a real drone needs RGB-only "
+                "perception (--perception rgb)")
     return a
 
 
@@ -94,6 +102,23 @@ def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
           "Tello app's emergency stop.")
     if ask("Type 'fly' to take off: ").strip().lower() != "fly":
         raise SystemExit("not confirmed: nothing was flown")
+
+
+NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
+
+
+def perception_models(spec: str, emu=None):
+    """``(detector, depth_estimator)`` for ``--perception``: ``rgb`` (the shipped models),
+    ``sim`` (the emulator's ground truth) or ``module:factory``."""
+    if spec == "rgb":
+        from torchrl_causal.perception.depth import MonoDepth
+        from torchrl_causal.perception.yolo import YoloGoalDetector
+
+        return YoloGoalDetector(), MonoDepth.load()
+    if spec == "sim":
+        return emu.sim_detector(), emu.sim_depth_estimator()
+    mod, _, fn = spec.partition(":")
+    return getattr(importlib.import_module(mod), fn)()
 
 
 def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=None):
@@ -218,20 +243,11 @@ def main(argv=None) -> dict:
     args.out = args.out or str(run / (f"tello_{args.host}" if real else "tello_emulator"))
     Path(args.out).mkdir(parents=True, exist_ok=True)
     summary: dict = {"run": str(run), "target": args.host or "emulator",
-                     "episodes": args.episodes}
+                     "episodes": args.episodes, "perception": args.perception,
+                     "noise": bool(args.noise)}
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
-        mod, _, fn = args.perception.partition(":") if args.perception else ("", "", "")
-        detector, depth = (getattr(importlib.import_module(mod), fn)() if mod else
-                           (None, None))
-        if args.dry_run and detector is None:
-            from torchrl_causal.perception.goal import GoalDetector
-
-            class _Blind(GoalDetector):
-                def detect(self, pixels, depth=None, **_):
-                    return torch.zeros(len(pixels), 0, 4), torch.zeros(len(pixels), 0)
-
-            detector, depth = _Blind(), (lambda p: torch.full(p.shape[:3], 10.0))
+        detector, depth = perception_models(args.perception)
         tello = None
         if not args.dry_run:
             from djitellopy import Tello
@@ -252,11 +268,13 @@ def main(argv=None) -> dict:
         from torchrl_causal.envs import TelloEmulator
 
         layout_opts = train_recipe.ru.SCENES[cfg.env.layout]
-        with TelloEmulator(env_options=dict(layout_opts, seed=cfg.seed), video_size=args.video_hw,
-                           time_scale=args.time_scale, battery_drain_per_min=0.0) as emu:
+        noise = NOISE if args.noise else {}
+        with TelloEmulator(env_options=dict(layout_opts, seed=cfg.seed, **noise),
+                           video_size=args.video_hw, time_scale=args.time_scale,
+                           battery_drain_per_min=0.0) as emu:
             tello = emu.client()
-            base, tenv = make_tello_env(args, cfg, tello, emu.sim_detector(),
-                                        emu.sim_depth_estimator(),
+            detector, depth = perception_models(args.perception, emu)
+            base, tenv = make_tello_env(args, cfg, tello, detector, depth,
                                         lambda _env: emu.reset_world(), layout=emu.env.layout)
             policy, _, _ = train_recipe.load_policy(run, env=tenv)
             t0 = time.perf_counter()
@@ -272,7 +290,8 @@ def main(argv=None) -> dict:
     if args.compare_sim:
         from torchrl_causal.training import evaluate
 
-        policy, env, _ = train_recipe.load_policy(run)
+        noise = [f"env.options.{k}={v}" for k, v in NOISE.items()] if args.noise else []
+        policy, env, _ = train_recipe.load_policy(run, overrides=noise)
         res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + int(cfg.seed) * 1009,
                        max_steps=args.max_steps)
         k = int(round(res["success_rate"] * args.compare_sim))
