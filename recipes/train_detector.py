@@ -69,9 +69,18 @@ def parse_args(argv=None):
         default=str(ROOT / "torchrl_causal" / "perception" / "weights" / "goal_yolov8n.pt"),
         help="where the best weights go ('' = do not copy)",
     )
+    p.add_argument(
+        "--init", default=None,
+        help="start from these weights (a checkpoint this recipe made) instead of yolov8n.yaml",
+    )
     p.add_argument("--evaluate-only", action="store_true")
+    p.add_argument(
+        "--finalize", action="store_true",
+        help="skip training: copy and evaluate <project>/<name>'s best weights",
+    )
     p.add_argument("--weights", default=None, help="weights to evaluate (--evaluate-only)")
     p.add_argument("--config-dir", default=str(ROOT / ".yolo_config"))
+    p.add_argument("--bench-reps", type=int, default=20, help="repetitions of the CPU timing")
     a = p.parse_args(argv)
     for name in ("n_train", "n_val", "epochs", "batch", "threads"):
         if getattr(a, name) < 1:
@@ -111,7 +120,7 @@ def train(a) -> Path:
             raise FileNotFoundError(f"--resume: {last} does not exist")
         YOLO(str(last)).train(resume=True)
         return run
-    model = YOLO("yolov8n.yaml")
+    model = YOLO(a.init if a.init else "yolov8n.yaml")
     model.train(
         data=str(Path(a.data).resolve() / "yolo" / "data.yaml"),
         epochs=a.epochs,
@@ -137,12 +146,12 @@ def train(a) -> Path:
     return run
 
 
-def evaluate(weights: Path, data_root: Path, *, threads: int) -> dict:
+def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, imgsz: int = 320) -> dict:
     """Held-out metrics at the data's resolution, ultralytics' own test-split figures and CPU ms."""
     from torchrl_causal.perception.dataset import evaluate_detector, load_views
     from torchrl_causal.perception.yolo import YoloGoalDetector
 
-    det = YoloGoalDetector(weights)
+    det = YoloGoalDetector(weights, imgsz=int(imgsz))
     views = load_views(data_root, "test")
     ours = evaluate_detector(det, views, conf_threshold=0.7, batch_size=16)
     # ultralytics' validator on the test split (P/R at its best-F1 confidence, mAP50)
@@ -173,9 +182,9 @@ def evaluate(weights: Path, data_root: Path, *, threads: int) -> dict:
 
     timing = {
         "threads": threads,
-        "ms_per_frame_b1": ms(frames[:1], 20),
-        "ms_per_frame_b16": ms(frames, 3),
-        "ms_per_frame_84x84_b1": ms(small[:1], 20),
+        "ms_per_frame_b1": ms(frames[:1], reps),
+        "ms_per_frame_b16": ms(frames, max(1, reps // 6)),
+        "ms_per_frame_84x84_b1": ms(small[:1], reps),
     }
     # the 84 x 84 frames of the test set (the DQN's camera): the same views, downscaled
     ours84 = evaluate_detector(
@@ -186,7 +195,7 @@ def evaluate(weights: Path, data_root: Path, *, threads: int) -> dict:
                     torch.from_numpy(v.rgb).permute(2, 0, 1)[None].float(), size=(84, 84),
                     mode="bilinear", antialias=True,
                 ).round().clamp(0, 255).byte()[0].permute(1, 2, 0).numpy(),
-                depth=v.depth[:: max(1, v.depth.shape[0] // 84), :: max(1, v.depth.shape[1] // 84)],
+                depth=np.zeros((84, 84), np.float32),  # (not used by the detector)
                 box=None if v.box is None else tuple(
                     c * s for c, s in zip(v.box, (84 / v.rgb.shape[1], 84 / v.rgb.shape[0]) * 2)
                 ),
@@ -214,45 +223,63 @@ def main(argv=None):
     data_root = Path(a.data)
     if a.evaluate_only:
         weights = Path(a.weights or a.out)
-        metrics = evaluate(weights, data_root, threads=a.threads)
+        from torchrl_causal.perception.yolo import load_sidecar
+
+        imgsz = load_sidecar(weights).get("imgsz", a.imgsz)
+        metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps, imgsz=imgsz)
         print(json.dumps(metrics, indent=1))
         return metrics
-    run = train(a)
+    run = Path(a.project) / a.name
+    if not a.finalize:
+        run = train(a)
     best = run / "weights" / "best.pt"
     if not best.is_file():
         best = run / "weights" / "last.pt"
     train_s = time.time() - t0
-    metrics = evaluate(best, data_root, threads=a.threads)
     sidecar = {
         "model": "yolov8n",
         "task": "detect",
         "names": ["heliport"],
-        "command": "python recipes/train_detector.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:])),
+        "command": "python recipes/train_detector.py "
+        + " ".join(
+            shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv) if x != "--finalize"
+        ),
         "seed": a.seed,
         "data": meta,
         "epochs": a.epochs,
         "imgsz": a.imgsz,
         "batch": a.batch,
+        "nbs": a.nbs or a.batch,
         "threads": a.threads,
         "fraction": a.fraction,
-        "train_wall_s": round(train_s, 1),
-        "metrics": metrics,
+        "init": a.init,
+        "train_wall_s": None if a.finalize else round(train_s, 1),
         "torch": torch.__version__,
     }
+    if a.init:
+        prev = Path(a.init).parents[1] / "torchrl_causal_metrics.json"
+        if prev.is_file():
+            sidecar["init_command"] = json.loads(prev.read_text()).get("command")
     try:
         import ultralytics
 
         sidecar["ultralytics"] = ultralytics.__version__
     except ImportError:  # pragma: no cover
         pass
+    out = Path(a.out) if a.out else run / "weights" / "goal_yolov8n.pt"
+    # the weights and their sidecar first (an interrupted evaluation loses nothing)
     if a.out:
         import shutil
 
-        out = Path(a.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(best, out)
-        out.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
         print(f"weights: {out} ({out.stat().st_size / 1e6:.1f} MB)")
+    else:
+        out = best
+    metrics = evaluate(out, data_root, threads=a.threads, reps=a.bench_reps, imgsz=a.imgsz)
+    sidecar["metrics"] = metrics
+    if a.out:
+        out.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
     (run / "torchrl_causal_metrics.json").write_text(json.dumps(sidecar, indent=1) + "\n")
     m = metrics["test_rule07"]
     print(
