@@ -64,7 +64,7 @@ def test_overlap_is_deterministic_and_resumes_exactly_on_batched_grid_worlds(
     assert all(torch.equal(ma[k], mb[k]) for k in ma)
 
 
-def test_overlap_acts_with_the_weights_of_one_batch_before(tmp_path):
+def test_overlap_acts_with_the_weights_of_one_batch_before(monkeypatch):
     """The acting copy holds the learner's weights from before the last batch's updates."""
     from torchrl_causal.training.loop import DQNLoop as Loop
 
@@ -79,11 +79,8 @@ def test_overlap_acts_with_the_weights_of_one_batch_before(tmp_path):
         seen.append((self.state["updates"], before,
                      [p.clone() for p in self.actor.parameters()]))
 
-    Loop._sync_acting = spy
-    try:
-        loop.run()
-    finally:
-        Loop._sync_acting = sync
+    monkeypatch.setattr(Loop, "_sync_acting", spy)
+    loop.run()
     # from the second sync on, what the worker acted with is what the learner had at
     # the sync before: one batch (4 frames, 4 updates) older than the learner
     lagged = 0
