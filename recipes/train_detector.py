@@ -128,7 +128,7 @@ def train(a) -> Path:
         batch=a.batch,
         device="cpu",
         workers=0,
-        pretrained=False,
+        pretrained=a.init if a.init else False,  # only ever this recipe's own weights
         amp=False,
         plots=False,
         seed=a.seed,

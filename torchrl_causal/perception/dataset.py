@@ -595,8 +595,9 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU matrix of boxes ``a [N, 4]`` and ``b [M, 4]`` (``x0, y0, x1, y1``).
 
     Example:
-        >>> box_iou(np.array([[0, 0, 2, 2.]]), np.array([[1, 0, 3, 2.], [0, 0, 2, 2]])).round(3)
-        array([[0.333, 1.   ]])
+        >>> iou = box_iou(np.array([[0, 0, 2, 2.]]), np.array([[1, 0, 3, 2.], [0, 0, 2, 2]]))
+        >>> iou.shape, [round(float(x), 3) for x in iou[0]]
+        ((1, 2), [0.333, 1.0])
     """
     a = np.asarray(a, np.float64).reshape(-1, 4)
     b = np.asarray(b, np.float64).reshape(-1, 4)
