@@ -78,7 +78,13 @@ def parse_args(argv=None):
         "--finalize", action="store_true",
         help="skip training: copy and evaluate <project>/<name>'s best weights",
     )
-    p.add_argument("--weights", default=None, help="weights to evaluate (--evaluate-only)")
+    p.add_argument(
+        "--calibrate-only", action="store_true",
+        help="fit the Platt calibration of --weights (default: the shipped ones) on the val "
+             "split, store it in their sidecar and re-evaluate",
+    )
+    p.add_argument("--weights", default=None,
+                   help="weights to evaluate (--evaluate-only) or calibrate (--calibrate-only)")
     p.add_argument("--config-dir", default=str(ROOT / ".yolo_config"))
     p.add_argument("--bench-reps", type=int, default=20, help="repetitions of the CPU timing")
     a = p.parse_args(argv)
@@ -146,6 +152,34 @@ def train(a) -> Path:
     return run
 
 
+def calibrate(weights: Path, data_root: Path, meta: dict) -> tuple[dict, dict]:
+    """Platt calibrations of the detector's scores (see
+    :func:`torchrl_causal.perception.yolo.fit_calibration`): one fitted on the val split at
+    the data's resolution, one on the same val views rendered at 84 x 84 (the DQN's camera;
+    used for frames whose longer side is at most 128 px)."""
+    from torchrl_causal.perception.dataset import load_views, render_views
+    from torchrl_causal.perception.yolo import YoloGoalDetector, fit_calibration
+
+    det = YoloGoalDetector(weights, calibration=None)
+    val = load_views(data_root, "val")
+    h, w = val[0].rgb.shape[:2]
+    val84 = list(render_views("val", len(val), seed=int(meta.get("seed", 0)), image_size=84,
+                              layout_seed=int(meta.get("layout_seed", 0))))
+    fits = []
+    for name, views, extra in (("large", val, {"fit_on": f"val split ({len(val)} views) at {h}x{w}"}),
+                               ("small", val84, {"max_side": 128, "fit_on": f"the same val views "
+                                                 f"({len(val84)}) rendered at 84x84"})):
+        try:
+            fit = {**fit_calibration(det, views), **extra}
+            print(f"calibration ({name}): a={fit['a']:.4f} b={fit['b']:.4f} ({fit['n']} "
+                  f"detections, {fit['positives']} correct)")
+        except ValueError as e:  # e.g. a barely trained model that detects nothing
+            print(f"calibration ({name}) not fitted, raw scores are used: {e}")
+            fit = None
+        fits.append(fit)
+    return fits[0], fits[1]
+
+
 def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, imgsz: int = 320) -> dict:
     """Held-out metrics at the data's resolution, ultralytics' own test-split figures and CPU ms."""
     from torchrl_causal.perception.dataset import evaluate_detector, load_views
@@ -186,27 +220,19 @@ def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, im
         "ms_per_frame_b16": ms(frames, max(1, reps // 6)),
         "ms_per_frame_84x84_b1": ms(small[:1], reps),
     }
-    # the 84 x 84 frames of the test set (the DQN's camera): the same views, downscaled
-    ours84 = evaluate_detector(
-        det,
-        [
-            type(v)(
-                rgb=torch.nn.functional.interpolate(
-                    torch.from_numpy(v.rgb).permute(2, 0, 1)[None].float(), size=(84, 84),
-                    mode="bilinear", antialias=True,
-                ).round().clamp(0, 255).byte()[0].permute(1, 2, 0).numpy(),
-                depth=np.zeros((84, 84), np.float32),  # (not used by the detector)
-                box=None if v.box is None else tuple(
-                    c * s for c, s in zip(v.box, (84 / v.rgb.shape[1], 84 / v.rgb.shape[0]) * 2)
-                ),
-                goal_pixels=v.goal_pixels, layout_index=v.layout_index, split="test",
-            )
-            for v in views
-        ],
-        conf_threshold=0.7,
-    )
+    # the test views rendered at 84 x 84 (the DQN's camera)
+    from torchrl_causal.perception.dataset import render_views
+
+    meta = json.loads((data_root / "meta.json").read_text())
+    views84 = list(render_views("test", len(views), seed=int(meta.get("seed", 0)), image_size=84,
+                                layout_seed=int(meta.get("layout_seed", 0))))
+    ours84 = evaluate_detector(det, views84, conf_threshold=0.7)
+    raw = evaluate_detector(YoloGoalDetector(weights, imgsz=int(imgsz), calibration=None), views,
+                            conf_threshold=0.7, batch_size=16)
     return {
+        "calibration": None if det.calibration is None else list(det.calibration),
         "test_rule07": ours,
+        "test_rule07_raw_scores": {k: raw[k] for k in ("precision", "recall", "image_accuracy")},
         "test_rule07_84x84": {k: ours84[k] for k in ("precision", "recall", "map50", "image_accuracy")},
         "test_ultralytics": ul,
         "cpu": timing,
@@ -229,6 +255,23 @@ def main(argv=None):
         metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps, imgsz=imgsz)
         print(json.dumps(metrics, indent=1))
         return metrics
+    if a.calibrate_only:
+        from torchrl_causal.perception.yolo import DEFAULT_WEIGHTS, load_sidecar
+
+        weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
+        sidecar = load_sidecar(weights)
+        sidecar["calibration"], sidecar["calibration_small"] = calibrate(weights, data_root, meta)
+        sidecar["calibration_command"] = "python recipes/train_detector.py " + " ".join(
+            shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv))
+        weights.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
+        metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps,
+                           imgsz=sidecar.get("imgsz", a.imgsz))
+        # the CPU timing of the training run stays (calibration changes no cost)
+        metrics.pop("cpu", None)
+        sidecar["metrics"] = {**sidecar.get("metrics", {}), **metrics}
+        weights.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
+        print(json.dumps(metrics["test_rule07"]))
+        return sidecar
     run = Path(a.project) / a.name
     if not a.finalize:
         run = train(a)
@@ -276,6 +319,9 @@ def main(argv=None):
         print(f"weights: {out} ({out.stat().st_size / 1e6:.1f} MB)")
     else:
         out = best
+    sidecar["calibration"], sidecar["calibration_small"] = calibrate(out, data_root, meta)
+    if a.out:  # the detector reads its calibration from the sidecar
+        out.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
     metrics = evaluate(out, data_root, threads=a.threads, reps=a.bench_reps, imgsz=a.imgsz)
     sidecar["metrics"] = metrics
     if a.out:
