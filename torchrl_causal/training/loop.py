@@ -32,6 +32,12 @@ reset the env. This holds with ``hook.background=False``; with a batched env
 come at batch ends and cut the episodes in flight, in the uninterrupted run as
 in the resumed one.
 
+**Overlap** (``LoopConfig.overlap=True``, opt-in): a worker thread collects
+the next batch while the main thread optimises on the last one; the acting
+copy of the Q-network lags the learner by one batch. Runs stay deterministic
+and resume exactly (see :doc:`/training`). The collector acts
+under ``torch.inference_mode`` in both modes.
+
 See :doc:`/training` for a walk-through and :doc:`/tutorial_gridnav` for a measured example.
 """
 
