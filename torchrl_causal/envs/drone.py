@@ -17,15 +17,15 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDict, TensorDictBase  # noqa: E402
-from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
+from torchrl.data import Bounded, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
 from ..perception.goal import GoalDetector, GoalMeter, SimGoalDetector  # noqa: E402
-from ..schema import ACTION_NAMES  # noqa: E402
 from .control import KinematicExecutor, PhysicsExecutor, action_deltas  # noqa: E402
 from .layouts import SPLITS, Layout, RandomLayoutGenerator, thesis_layout  # noqa: E402
 from .rewards import REWARDS, StepOutcome, make_reward  # noqa: E402
 from .scene import SceneRenderer, build_model  # noqa: E402
+from .specs import navigation_specs  # noqa: E402
 
 __all__ = ["DroneNavEnv", "EXECUTION_MODES", "LAYOUTS", "REWARDS"]
 
@@ -273,35 +273,19 @@ class DroneNavEnv(EnvBase):
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self):
-        h, w = self.image_size
-        dev = self.device
         f32 = torch.float32
-
-        def flag():
-            return Categorical(2, shape=(1,), dtype=torch.bool, device=dev)
-
-        self.observation_spec = Composite(
-            pixels=Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev),
-            depth=Bounded(0.0, self.max_depth, shape=(h, w), dtype=f32, device=dev),
-            altitude=Unbounded(shape=(1,), dtype=f32, device=dev),
-            goal_box=Bounded(0.0, float(max(h, w)), shape=(4,), dtype=f32, device=dev),
-            goal_pixels=Bounded(0.0, float(h * w), shape=(1,), dtype=f32, device=dev),
-            goal_true_distance=Unbounded(shape=(1,), dtype=f32, device=dev),
-            goal_true_bearing=Bounded(-180.0, 180.0, shape=(1,), dtype=f32, device=dev),
-            goal_in_sight=flag(),
-            goal_distance=Bounded(0.0, self.max_depth, shape=(1,), dtype=f32, device=dev),
-            goal_angle=Bounded(-90.0, 90.0, shape=(1,), dtype=f32, device=dev),
-            crashed=flag(),
-            reached=flag(),
-            out_of_bounds=flag(),
-            shape=(),
-            device=dev,
+        specs = navigation_specs(
+            self.image_size, self.max_depth, self.device,
+            goal_box=lambda h, w, dev: Bounded(0.0, float(max(h, w)), shape=(4,), dtype=f32,
+                                               device=dev),
+            goal_pixels=lambda h, w, dev: Bounded(0.0, float(h * w), shape=(1,), dtype=f32,
+                                                  device=dev),
+            goal_true_distance=lambda h, w, dev: Unbounded(shape=(1,), dtype=f32, device=dev),
+            goal_true_bearing=lambda h, w, dev: Bounded(-180.0, 180.0, shape=(1,), dtype=f32,
+                                                        device=dev),
         )
-        self.action_spec = Categorical(len(ACTION_NAMES), shape=(), dtype=torch.int64, device=dev)
-        self.reward_spec = Unbounded(shape=(1,), dtype=f32, device=dev)
-        self.done_spec = Composite(
-            done=flag(), terminated=flag(), truncated=flag(), shape=(), device=dev
-        )
+        for name, spec in specs.items():
+            setattr(self, name, spec)
 
     # ---------------------------------------------------------------- scene
     def _select_layout(self) -> Layout:

@@ -71,12 +71,13 @@ from typing import Callable
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
 from ..perception.goal import GoalDetector, GoalMeter
 from ..schema import ACTION_NAMES
 from .rewards import StepOutcome, make_reward
+from .specs import navigation_specs
 
 __all__ = ["TelloEnv", "TelloError", "TelloCommandError", "TelloSafetyError", "TelloVideoError",
            "ACTION_COMMANDS"]
@@ -369,31 +370,13 @@ class TelloEnv(EnvBase):
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self):
-        h, w = self.image_size
-        dev = self.device
-        f32 = torch.float32
-
-        def flag():
-            return Categorical(2, shape=(1,), dtype=torch.bool, device=dev)
-
-        self.observation_spec = Composite(
-            pixels=Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev),
-            depth=Bounded(0.0, self.max_depth, shape=(h, w), dtype=f32, device=dev),
-            altitude=Unbounded(shape=(1,), dtype=f32, device=dev),
-            battery=Bounded(0.0, 100.0, shape=(1,), dtype=f32, device=dev),
-            goal_in_sight=flag(),
-            goal_distance=Bounded(0.0, self.max_depth, shape=(1,), dtype=f32, device=dev),
-            goal_angle=Bounded(-90.0, 90.0, shape=(1,), dtype=f32, device=dev),
-            crashed=flag(),
-            reached=flag(),
-            out_of_bounds=flag(),
-            shape=(),
-            device=dev,
+        specs = navigation_specs(
+            self.image_size, self.max_depth, self.device,
+            battery=lambda h, w, dev: Bounded(0.0, 100.0, shape=(1,), dtype=torch.float32,
+                                              device=dev),
         )
-        self.action_spec = Categorical(len(ACTION_NAMES), shape=(), dtype=torch.int64, device=dev)
-        self.reward_spec = Unbounded(shape=(1,), dtype=f32, device=dev)
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(),
-                                   device=dev)
+        for name, spec in specs.items():
+            setattr(self, name, spec)
 
     # ------------------------------------------------------------------ commands
     def action_command(self, action: int) -> str:
