@@ -41,6 +41,16 @@ import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS_DETECTOR = {"precision": 0.943, "recall": 0.902}
+VFOV_DEG = 60.0  # DroneNavEnv's default vertical field of view (the views' camera)
+
+
+def rgb_stack(h: int, w: int, detector, depth):
+    """The RGB-only feature stack for views of ``h x w`` pixels."""
+    from torchrl_causal.perception import horizontal_fov
+    from torchrl_causal.transforms import make_causal_transforms
+
+    return make_causal_transforms(perception="rgb", detector=detector, depth_estimator=depth,
+                                  hfov_deg=horizontal_fov(VFOV_DEG, h, w), seed=0)
 
 
 def emit(figure: str, **values) -> dict:
@@ -62,13 +72,9 @@ def median_ms(fn, frames: int, repeats: int) -> float:
 def bench_costs(views_by_size: dict, detector, depth, repeats: int) -> None:
     from tensordict import TensorDict
 
-    from torchrl_causal.transforms import make_causal_transforms
-
     for (h, w), views in views_by_size.items():
         px_all = torch.from_numpy(np.stack([v.rgb for v in views]))
-        hfov = float(np.degrees(2 * np.arctan(np.tan(np.radians(30.0)) * w / h)))
-        stack = make_causal_transforms(perception="rgb", detector=detector, depth_estimator=depth,
-                                       hfov_deg=hfov, seed=0)
+        stack = rgb_stack(h, w, detector, depth)
         for batch in (1, 16):
             px = px_all[:batch]
             td = TensorDict({"pixels": px, "altitude": torch.ones(batch, 1)}, [batch])
@@ -99,14 +105,12 @@ def bench_accuracy(views_by_size: dict, detector, depth) -> None:
 
 
 def bench_agreement(views, detector, depth) -> dict:
+    from torchrl_causal.perception import horizontal_fov
     from torchrl_causal.perception.agreement import feature_agreement
-    from torchrl_causal.transforms import make_causal_transforms
 
     h, w = views[0].rgb.shape[:2]
-    hfov = float(np.degrees(2 * np.arctan(np.tan(np.radians(30.0)) * w / h)))
-    stack = make_causal_transforms(perception="rgb", detector=detector, depth_estimator=depth,
-                                   hfov_deg=hfov, seed=0)
-    res = feature_agreement(views, stack, hfov_deg=hfov, seed=0)
+    res = feature_agreement(views, rgb_stack(h, w, detector, depth), seed=0,
+                            hfov_deg=horizontal_fov(VFOV_DEG, h, w))
     return emit("feature_agreement", image_size=[h, w], n_views=res["n"],
                 per_variable={k: round(v, 4) for k, v in res["per_variable"].items()},
                 all_nine=round(res["all_nine"], 4),

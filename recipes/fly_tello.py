@@ -130,10 +130,8 @@ def perception_models(spec: str, emu=None):
 
 
 def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=None):
-    from torchrl.envs import TransformedEnv
-
     import recipe_utils as ru
-    from omegaconf import OmegaConf
+    import train as train_recipe
     from torchrl_causal.envs import TelloEnv
 
     reach = args.reach_distance
@@ -152,14 +150,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         max_steps=args.max_steps or cfg.env.max_steps, settle_s=args.settle if args.settle
         is not None else (0.5 if real else 0.0), command_timeout=7 if real else 3,
         before_takeoff=before_takeoff, dry_run=args.dry_run, **kw)
-    variant = ru.VARIANTS[cfg.variant]
-    if variant.features:
-        from torchrl_causal.transforms import make_causal_transforms
-
-        options = OmegaConf.to_container(cfg.features.options, resolve=True)
-        options.setdefault("seed", cfg.seed)
-        return env, TransformedEnv(env, make_causal_transforms(env, **options))
-    return env, env
+    return env, train_recipe.with_features(cfg, ru.VARIANTS[cfg.variant], env)
 
 
 def fly(args, policy, tenv, base, emu=None) -> list[dict]:

@@ -54,7 +54,7 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str, num
     for CBN variants (applied to the batch)."""
     import functools
 
-    from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
+    from torchrl.envs import ParallelEnv, SerialEnv
 
     from torchrl_causal.envs import DroneNavEnv
 
@@ -66,13 +66,21 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str, num
         env = make()
     else:
         env = (ParallelEnv if cfg.env.parallel else SerialEnv)(num_envs, make, device=device)
-    if variant.features:
-        from torchrl_causal.transforms import make_causal_transforms
+    return with_features(cfg, variant, env)
 
-        options = OmegaConf.to_container(cfg.features.options, resolve=True)
-        options.setdefault("seed", cfg.seed)
-        env = TransformedEnv(env, make_causal_transforms(env, **options))
-    return env
+
+def with_features(cfg: DictConfig, variant: ru.Variant, env):
+    """``env`` with the run's causal feature stack (``features.options``) for CBN variants;
+    ``env`` itself for the image-only DQN."""
+    if not variant.features:
+        return env
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_causal.transforms import make_causal_transforms
+
+    options = OmegaConf.to_container(cfg.features.options, resolve=True)
+    options.setdefault("seed", cfg.seed)
+    return TransformedEnv(env, make_causal_transforms(env, **options))
 
 
 def random_frames(cfg: DictConfig, variant: ru.Variant) -> int:

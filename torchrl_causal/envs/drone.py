@@ -20,7 +20,12 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
-from ..perception.goal import GoalDetector, GoalMeter, SimGoalDetector  # noqa: E402
+from ..perception.goal import (  # noqa: E402
+    GoalDetector,
+    GoalMeter,
+    SimGoalDetector,
+    horizontal_fov,
+)
 from .control import KinematicExecutor, PhysicsExecutor, action_deltas  # noqa: E402
 from .layouts import SPLITS, Layout, RandomLayoutGenerator, thesis_layout  # noqa: E402
 from .rewards import REWARDS, StepOutcome, make_reward  # noqa: E402
@@ -246,7 +251,7 @@ class DroneNavEnv(EnvBase):
         self.detector = detector if detector is not None else SimGoalDetector(int(goal_min_pixels))
         # the GoalMeter works on the horizontal field of view
         h, w = self.image_size
-        hfov = math.degrees(2 * math.atan(math.tan(math.radians(self.fov_deg) / 2) * w / h))
+        hfov = horizontal_fov(self.fov_deg, h, w)
         self.hfov_deg = hfov
         self.goal_meter = GoalMeter(
             self.detector,

@@ -74,7 +74,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
-from ..perception.goal import GoalDetector, GoalMeter
+from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
 from ..schema import ACTION_NAMES
 from .rewards import StepOutcome, make_reward
 from .specs import navigation_specs
@@ -342,7 +342,7 @@ class TelloEnv(EnvBase):
         self.detector = detector
         self.depth_estimator = depth_estimator
         h, w = self.image_size
-        self.hfov_deg = math.degrees(2 * math.atan(math.tan(math.radians(self.fov_deg) / 2) * w / h))
+        self.hfov_deg = horizontal_fov(self.fov_deg, h, w)
         self.goal_meter = GoalMeter(detector, hfov_deg=self.hfov_deg,
                                     confidence_threshold=float(confidence_threshold),
                                     max_depth=self.max_depth)

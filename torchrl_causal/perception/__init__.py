@@ -18,9 +18,11 @@ from torchrl_causal.perception.goal import (
     GoalMeter,
     SimGoalDetector,
     box_angle_deg,
+    horizontal_fov,
 )
 
-__all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg"]
+__all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg",
+           "horizontal_fov"]
 
 # Imported on first use (MuJoCo rendering, ultralytics): the package stays light and
 # importable without the ``perception`` extra.

@@ -48,7 +48,8 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg"]
+__all__ = ["GoalDetector", "SimGoalDetector", "GoalMeasurement", "GoalMeter", "box_angle_deg",
+           "horizontal_fov"]
 
 
 class GoalDetector(abc.ABC):
@@ -150,6 +151,16 @@ class GoalMeasurement:
 def _focal_px(width: int, hfov_deg: float) -> float:
     """Pinhole focal length in pixels: ``(W/2) / tan(hfov/2)``."""
     return (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+
+
+def horizontal_fov(vfov_deg: float, height: int, width: int) -> float:
+    """Horizontal field of view (deg) of a pinhole camera with square pixels.
+
+    Example:
+        >>> round(horizontal_fov(60.0, 240, 320), 2), round(horizontal_fov(60.0, 84, 84), 6)
+        (75.18, 60.0)
+    """
+    return math.degrees(2 * math.atan(math.tan(math.radians(vfov_deg) / 2) * width / height))
 
 
 def box_angle_deg(box: torch.Tensor, width: int, hfov_deg: float) -> torch.Tensor:
