@@ -132,7 +132,9 @@ def build_buffer(cfg: DictConfig, scratch: Path, device: str = "cpu"):
     from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 
     if cfg.buffer.size > cfg.buffer.memmap_above:
-        storage = LazyMemmapStorage(cfg.buffer.size, scratch_dir=cfg.buffer.scratch_dir or scratch)
+        # existsok: a resumed run reuses its own scratch files (the checkpoint overwrites them)
+        storage = LazyMemmapStorage(cfg.buffer.size, scratch_dir=cfg.buffer.scratch_dir or scratch,
+                                    existsok=True)
     else:
         storage = LazyTensorStorage(cfg.buffer.size, device=device)
     return TensorDictReplayBuffer(storage=storage, batch_size=cfg.buffer.batch_size)

@@ -57,6 +57,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from torchrl_causal.data.checkpoint import install_filled_rows_checkpointer
 from torchrl_causal.training.evaluation import OUTCOME_KEYS, evaluate, seed_transforms
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 
@@ -110,7 +111,10 @@ class LoopConfig:
         keep_final_buffer: keep a copy of the replay buffer in the finished run's
             checkpoint, so the run can be extended later (default False: a
             finished run keeps none, and its disk holds one buffer at most -- a
-            memmap storage's own files).
+            memmap storage's own files). Mid-run checkpoints write the buffer's
+            filled rows only, file to file
+            (:class:`~torchrl_causal.data.FilledRowsCheckpointer`, installed on
+            a storage that has TorchRL's default checkpointer).
         seed: seeds torch, NumPy, Python, the env, its transforms and the evaluations.
         overlap: collect the next batch in a worker thread while the main thread
             optimises on the last one (opt-in; see :class:`DQNLoop`). The acting
@@ -421,6 +425,9 @@ class DQNLoop:
                 storage=LazyTensorStorage(cfg.buffer_size, device=self.device),
                 batch_size=cfg.batch_size,
             )
+        # mid-run checkpoints write the buffer's filled rows, file to file (TorchRL's
+        # default copies the full capacity through memory maps: 2x a memmap buffer)
+        install_filled_rows_checkpointer(replay_buffer)
         present = getattr(replay_buffer, "_transform", None) or []
         if hook is not None and not any(t is hook for t in present):
             replay_buffer.append_transform(hook)  # once, also when the buffer already has it
