@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import sys
 import time
@@ -47,7 +48,7 @@ from results import wilson  # noqa: E402
 
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
-               "success_sim", "battery"]
+               "success_sim", "closest_sim_m", "land_offset_sim_m", "battery"]
 
 
 def parse_args(argv=None):
@@ -186,6 +187,10 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
                    "success": int(bool(nxt["reached"])), "crash": int(bool(nxt["crashed"])),
                    "out_of_bounds": int(bool(nxt["out_of_bounds"])),
                    "success_sim": int(gt["reached"]) if gt else "",
+                   "closest_sim_m": (round(gt["closest_goal_m"], 3)
+                                     if gt and math.isfinite(gt["closest_goal_m"]) else ""),
+                   "land_offset_sim_m": (" ".join(f"{v:+.3f}" for v in gt["land_offset_m"])
+                                         if gt and gt["land_offset_m"] else ""),
                    "battery": float(nxt["battery"])}
             csv.write(row)
             rows.append(row)
@@ -286,6 +291,8 @@ def main(argv=None) -> dict:
                 base.close()
             summary["wall_s"] = round(time.perf_counter() - t0, 1)
         summary["success_sim"] = summarize(rows, "success_sim")
+        closest = [r["closest_sim_m"] for r in rows if r["closest_sim_m"] != ""]
+        summary["closest_sim_m_median"] = float(np.median(closest)) if closest else None
     summary["success"] = summarize(rows)
     summary["crashes"] = sum(r["crash"] for r in rows)
     summary["mean_length"] = float(np.mean([r["length"] for r in rows]))

@@ -59,8 +59,15 @@ def _fly_every_action(emu, tello):
     time.sleep(0.25)  # a state message after the take-off
     assert tello.get_height() == 100 and tello.get_distance_tof() == 100
     x0, y0, z0, yaw0 = emu.pose()
+    goal = np.asarray(emu.env._goal_point, dtype=float)
+    gt = emu.ground_truth()
+    assert gt["closest_goal_m"] == float("inf") and gt["land_offset_m"] is None  # no move yet
     tello.move_forward(25)
     assert emu.pose()[0] == pytest.approx(x0 + 0.25, abs=1e-6)
+    # the goal point lies ahead: the closest approach is where the move ended
+    assert goal[0] > x0 + 0.25
+    after = np.linalg.norm(np.asarray(emu.pose()[:3]) - goal)
+    assert emu.ground_truth()["closest_goal_m"] == pytest.approx(after, abs=1e-6)
     tello.move_back(25)
     tello.move_left(30)
     assert emu.pose()[1] == pytest.approx(y0 + 0.30, abs=1e-6)
@@ -85,7 +92,10 @@ def _fly_every_action(emu, tello):
     err = np.abs(frame.astype(np.float32) - rgb.astype(np.float32)).mean()
     assert err < 4.0, err
     assert np.abs(frame.astype(np.float32) - np.roll(rgb, 40, axis=1)).mean() > 2 * err
+    offset = np.asarray(emu.pose()[:3]) - goal
     tello.land()
+    assert emu.ground_truth()["land_offset_m"] == pytest.approx(tuple(offset), abs=1e-3)
+    assert emu.ground_truth()["closest_goal_m"] == pytest.approx(after, abs=1e-6)
     assert not emu.flying
     tello.streamoff()
 

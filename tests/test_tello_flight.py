@@ -42,6 +42,10 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     rows = pd.read_csv(out / "episodes.csv")
     assert list(rows["episode"]) == [1, 2, 3]
     assert set(rows["success_sim"]) <= {0, 1} and (rows["length"] >= 1).all()
+    # the closest approach agrees with the simulator's verdict (0.2 m reach radius)
+    assert ((rows["closest_sim_m"] <= 0.2) == (rows["success_sim"] == 1)).all(), rows
+    offsets = rows["land_offset_sim_m"].str.split().apply(lambda v: [float(x) for x in v])
+    assert (offsets.apply(len) == 3).all()
     with av.open(str(out / "onboard.mp4")) as c:
         frames = sum(1 for _ in c.decode(video=0))
     assert frames >= rows["length"].sum()

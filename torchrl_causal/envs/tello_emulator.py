@@ -394,6 +394,8 @@ class TelloEmulator:
         self.streaming = False
         self.crashed = False
         self.reached = False
+        self.closest_goal_m = math.inf  # closest approach to the goal point since take-off
+        self.land_offset_m: tuple | None = None  # drone - goal point (m) at the land command
         self._pose = (0.0, 0.0, 0.0, 0.0)
         self._motion: _Motion | None = None
         self._pending: collections.deque = collections.deque()
@@ -502,9 +504,12 @@ class TelloEmulator:
     def ground_truth(self) -> dict:
         """Simulation ground truth since the last take-off: ``reached`` (the drone passed
         within the env's ``reach_radius`` of the goal point), ``crashed``, ``flying``,
-        ``pose``, ``battery``."""
+        ``pose``, ``battery``, ``closest_goal_m`` (the closest approach to the goal
+        point, m) and ``land_offset_m`` (drone minus goal point, x/y/z in m, when
+        the ``land`` command came; None before one)."""
         return {"reached": self.reached, "crashed": self.crashed, "flying": self.flying,
-                "pose": self._pose, "battery": self.battery}
+                "pose": self._pose, "battery": self.battery,
+                "closest_goal_m": self.closest_goal_m, "land_offset_m": self.land_offset_m}
 
     def reset_world(self, timeout: float = 30.0) -> None:
         """Puts the drone back, landed, at the start of a (new, for random layouts) layout.
@@ -686,6 +691,16 @@ class TelloEmulator:
         x, y, z, yaw = self.env._executor.pose()
         self._pose = (x, y, z, math.degrees(yaw))
         self._state_version += 1
+        m = self._motion
+        if self.flying and (m is None or m.kind == "move"):  # not while taking off / landing
+            self.closest_goal_m = min(self.closest_goal_m, self._goal_offset_norm())
+
+    def _goal_offset(self) -> tuple:
+        g = self.env._goal_point
+        return tuple(float(self._pose[i] - g[i]) for i in range(3))
+
+    def _goal_offset_norm(self) -> float:
+        return math.sqrt(sum(v * v for v in self._goal_offset()))
 
     def _set_z(self, z: float):
         import mujoco
@@ -848,6 +863,7 @@ class TelloEmulator:
                 z0 = self.env._executor.pose()[2]
                 target = self.takeoff_height or float(self.env.layout.start_pos[2])
                 self.crashed = self.reached = False
+                self.closest_goal_m, self.land_offset_m = math.inf, None
                 self._takeoff_yaw = self._pose[3]
                 self._flight_time = 0.0
                 self.flying = True
@@ -858,6 +874,7 @@ class TelloEmulator:
             if not self.flying:
                 self._reply("ok", addr, now)  # already on the ground
             else:
+                self.land_offset_m = tuple(round(v, 3) for v in self._goal_offset())
                 z0 = self.env._executor.pose()[2]
                 self._start_motion(_Motion("land", (0.0, 0.0, self._ground_z() - z0, 0.0),
                                            self.takeoff_s, addr, start_z=z0), now)
