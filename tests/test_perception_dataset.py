@@ -140,6 +140,28 @@ def test_view_contents_and_mix():
     assert np.std(first, axis=0).max() > 1.0
 
 
+def test_goal_distance_draws_close_ups():
+    """``goal_distance`` sets how far "goal" views stand from the board (close-ups where the
+    board fills the view), and leaves the default views as they were."""
+    opts = dict(seed=5, image_size=48, goal_absent_frac=0.0, start_frac=0.0)
+    close = list(render_views("train", 24, goal_distance=(0.3, 0.6), **opts))
+    usual = list(render_views("train", 24, **opts))
+    same = list(render_views("train", 24, goal_distance=(0.5, 9.0), **opts))
+
+    def dist(v):
+        g = _layout(v).goal_center
+        return math.hypot(v.pose[0] - g[0], v.pose[1] - g[1])
+
+    assert all(v.kind == "goal" for v in close)
+    assert all(0.3 - 1e-9 <= dist(v) <= 0.6 + 1e-9 for v in close), [dist(v) for v in close]
+    assert np.median([dist(v) for v in usual]) > 1.0
+    for x, y in zip(usual, same):  # the default range is the historical one
+        np.testing.assert_array_equal(x.rgb, y.rgb)
+    # close up, the board covers much more of the image
+    cover = lambda vs: np.mean([v.goal_pixels for v in vs if v.box is not None])  # noqa: E731
+    assert cover(close) > 3 * cover(usual)
+
+
 def test_deterministic_and_start_offset():
     a = list(render_views("val", 6, seed=3, image_size=48, views_per_layout=3))
     b = list(render_views("val", 6, seed=3, image_size=48, views_per_layout=3))
@@ -227,6 +249,9 @@ def test_evaluate_detector_ground_truth_is_perfect():
         (dict(split="train", n=1, seed=0, goal_absent_frac=1.5), "goal_absent_frac"),
         (dict(split="train", n=1, seed=0, views_per_layout=0), "views_per_layout"),
         (dict(split="train", n=1, seed=0, fov_deg=200.0), "fov_deg"),
+        (dict(split="train", n=1, seed=0, goal_distance=(2.0, 1.0)), "goal_distance"),
+        (dict(split="train", n=1, seed=0, goal_distance=(0.0, 1.0)), "goal_distance"),
+        (dict(split="train", n=1, seed=0, goal_distance="near"), "goal_distance"),
     ],
 )
 def test_bad_options(kwargs, match):

@@ -25,7 +25,7 @@ consecutive views share a layout.
 ``"start"`` (the rest's ``start_frac``: around the layout's start pose looking
 towards the goal, where the generator puts an obstacle across the line of
 sight, so the goal is often partly or fully hidden), and ``"goal"`` (a pose in
-front of the board at a log-uniform distance of 0.5-9 m, up to 70 deg off its
+front of the board at a log-uniform distance of 0.5-9 m (``goal_distance``), up to 70 deg off its
 normal, the goal anywhere across the image's width, some views cut by the
 image border). Every view also gets a small random roll and pitch (as the
 physics execution mode shows), and random lighting (light direction and
@@ -192,7 +192,7 @@ def _inside(layout, x, y, margin=0.15) -> bool:
     return xmin + margin <= x <= xmax - margin and ymin + margin <= y <= ymax - margin
 
 
-def _draw_pose(rng, layout, kind: str, hfov_deg: float):
+def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0)):
     """``(x, y, z, yaw_deg)`` for a view of ``kind`` (falls back to the start pose)."""
     g = np.asarray(layout.goal_center, dtype=np.float64)
     xmin, ymin, xmax, ymax = layout.arena
@@ -200,7 +200,7 @@ def _draw_pose(rng, layout, kind: str, hfov_deg: float):
     half = hfov_deg / 2.0
     for _ in range(200):
         if kind == "goal":
-            d = math.exp(rng.uniform(math.log(0.5), math.log(9.0)))
+            d = math.exp(rng.uniform(math.log(goal_distance[0]), math.log(goal_distance[1])))
             phi = math.radians(layout.goal_yaw_deg + rng.uniform(-70.0, 70.0))
             x = g[0] + math.cos(phi) * d
             y = g[1] + math.sin(phi) * d
@@ -304,6 +304,7 @@ def render_views(
     max_tilt_deg: float = 4.0,
     randomize_appearance: bool = True,
     start: int = 0,
+    goal_distance: Sequence[float] = (0.5, 9.0),
 ) -> Iterator[View]:
     """Renders ``n`` views of ``split``, lazily (see the module docstring).
 
@@ -323,6 +324,9 @@ def render_views(
         max_tilt_deg: largest random roll / pitch (deg).
         randomize_appearance: randomise lighting and tints per view.
         start: number of the first view (views ``start .. start + n - 1``).
+        goal_distance: ``(low, high)`` horizontal distance (m) of ``"goal"`` views
+            from the board's centre, drawn log-uniformly (default 0.5-9 m; e.g.
+            ``(0.3, 1.2)`` for close-ups where the board fills the view).
 
     Yields:
         :class:`View` objects.
@@ -351,16 +355,23 @@ def render_views(
         raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg!r}")
     if not isinstance(max_depth, (int, float)) or not max_depth > 0:
         raise ValueError(f"max_depth must be > 0, got {max_depth!r}")
+    try:
+        lo, hi = (float(v) for v in goal_distance)
+    except (TypeError, ValueError):
+        lo = hi = float("nan")
+    if not 0 < lo < hi:
+        raise ValueError(f"goal_distance must be (low, high) with 0 < low < high, "
+                         f"got {goal_distance!r}")
     return _render(
         split, n, seed, (h, w), layout_seed, goal_absent_frac, start_frac, views_per_layout,
         min_fraction, float(fov_deg), float(max_depth), max_tilt_deg,
-        bool(randomize_appearance), start,
+        bool(randomize_appearance), start, (lo, hi),
     )
 
 
 def _render(
     split, n, seed, image_size, layout_seed, absent_frac, start_frac, per_layout,
-    min_fraction, fov_deg, max_depth, max_tilt, randomize, start,
+    min_fraction, fov_deg, max_depth, max_tilt, randomize, start, goal_distance=(0.5, 9.0),
 ) -> Iterator[View]:
     from ..envs.drone import DroneNavEnv
 
@@ -400,7 +411,7 @@ def _render(
                 kind = "start"
             else:
                 kind = "goal"
-            x, y, z, yaw = _draw_pose(rng, env.layout, kind, env.hfov_deg)
+            x, y, z, yaw = _draw_pose(rng, env.layout, kind, env.hfov_deg, goal_distance)
             pitch, roll = rng.uniform(-max_tilt, max_tilt, size=2) if max_tilt > 0 else (0.0, 0.0)
             if randomize:
                 appearance.apply(rng)
@@ -777,6 +788,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--layout-seed", type=int, default=0)
     p.add_argument("--goal-absent-frac", type=float, default=0.2)
     p.add_argument("--views-per-layout", type=int, default=8)
+    p.add_argument("--start-frac", type=float, default=0.2)
+    p.add_argument("--goal-distance", type=float, nargs=2, default=(0.5, 9.0),
+                   metavar=("LOW", "HIGH"), help="distance range (m) of views of the goal")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     meta = write_datasets(
@@ -788,6 +802,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         image_size=tuple(a.image_size),
         layout_seed=a.layout_seed,
         goal_absent_frac=a.goal_absent_frac,
+        start_frac=a.start_frac,
+        goal_distance=tuple(a.goal_distance),
         views_per_layout=a.views_per_layout,
         progress=not a.no_progress,
     )
