@@ -85,6 +85,12 @@ def parse_args(argv=None):
     )
     p.add_argument("--weights", default=None,
                    help="weights to evaluate (--evaluate-only) or calibrate (--calibrate-only)")
+    p.add_argument(
+        "--extra-data", action="append", default=[], metavar="ROOT",
+        help="another dataset root written by `python -m torchrl_causal.perception.dataset` "
+             "(e.g. close-ups: --goal-distance 0.3 1.2), repeatable: its train images join "
+             "training, its val views the calibration; its test split is reported apart",
+    )
     p.add_argument("--config-dir", default=str(ROOT / ".yolo_config"))
     p.add_argument("--bench-reps", type=int, default=20, help="repetitions of the CPU timing")
     a = p.parse_args(argv)
@@ -95,7 +101,28 @@ def parse_args(argv=None):
         p.error(f"--imgsz must be a multiple of 32, got {a.imgsz}")
     if not 0 < a.fraction <= 1:
         p.error(f"--fraction must be in (0, 1], got {a.fraction}")
+    for extra in a.extra_data:
+        if not ((Path(extra) / "yolo" / "data.yaml").is_file()
+                and (Path(extra) / "meta.json").is_file()):
+            p.error(f"--extra-data {extra!r} is not a dataset root (no yolo/data.yaml and "
+                    "meta.json): write one with `python -m torchrl_causal.perception.dataset`")
     return a
+
+
+def data_yaml(a) -> Path:
+    """The data.yaml ultralytics trains on: the dataset's own, or -- with --extra-data --
+    one whose train split lists every root's train images (val and test: the dataset's)."""
+    own = Path(a.data).resolve() / "yolo" / "data.yaml"
+    if not a.extra_data:
+        return own
+    roots = [Path(a.data).resolve()] + [Path(e).resolve() for e in a.extra_data]
+    train = ", ".join(json.dumps(str(r / "yolo" / "images" / "train")) for r in roots)
+    y = Path(a.data).resolve() / "yolo"
+    path = Path(a.project).resolve() / f"{a.name}_data.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"path: {y}\ntrain: [{train}]\nval: {y / 'images' / 'val'}\n"
+                    f"test: {y / 'images' / 'test'}\nnc: 1\nnames: [\"heliport\"]\n")
+    return path
 
 
 def ensure_data(a) -> dict:
@@ -128,7 +155,7 @@ def train(a) -> Path:
         return run
     model = YOLO(a.init if a.init else "yolov8n.yaml")
     model.train(
-        data=str(Path(a.data).resolve() / "yolo" / "data.yaml"),
+        data=str(data_yaml(a)),
         epochs=a.epochs,
         imgsz=a.imgsz,
         batch=a.batch,
@@ -152,19 +179,32 @@ def train(a) -> Path:
     return run
 
 
-def calibrate(weights: Path, data_root: Path, meta: dict) -> tuple[dict, dict]:
+def _views84(root: Path, split: str, n: int) -> list:
+    """Views ``0 .. n-1`` of a dataset root's ``split`` rendered again at 84 x 84."""
+    from torchrl_causal.perception.dataset import render_views
+
+    meta = json.loads((root / "meta.json").read_text())
+    return list(render_views(split, n, seed=int(meta.get("seed", 0)), image_size=84,
+                             layout_seed=int(meta.get("layout_seed", 0)),
+                             **meta.get("view_options", {})))
+
+
+def calibrate(weights: Path, data_root: Path, meta: dict, extra=()) -> tuple[dict, dict]:
     """Platt calibrations of the detector's scores (see
     :func:`torchrl_causal.perception.yolo.fit_calibration`): one fitted on the val split at
     the data's resolution, one on the same val views rendered at 84 x 84 (the DQN's camera;
-    used for frames whose longer side is at most 128 px)."""
-    from torchrl_causal.perception.dataset import load_views, render_views
+    used for frames whose longer side is at most 128 px). ``extra`` dataset roots add
+    their val views to both."""
+    from torchrl_causal.perception.dataset import load_views
     from torchrl_causal.perception.yolo import YoloGoalDetector, fit_calibration
 
     det = YoloGoalDetector(weights, calibration=None)
-    val = load_views(data_root, "val")
+    val, val84 = [], []
+    for root in (data_root, *map(Path, extra)):
+        views = load_views(root, "val")
+        val += views
+        val84 += _views84(root, "val", len(views))
     h, w = val[0].rgb.shape[:2]
-    val84 = list(render_views("val", len(val), seed=int(meta.get("seed", 0)), image_size=84,
-                              layout_seed=int(meta.get("layout_seed", 0))))
     fits = []
     for name, views, extra in (("large", val, {"fit_on": f"val split ({len(val)} views) at {h}x{w}"}),
                                ("small", val84, {"max_side": 128, "fit_on": f"the same val views "
@@ -180,8 +220,10 @@ def calibrate(weights: Path, data_root: Path, meta: dict) -> tuple[dict, dict]:
     return fits[0], fits[1]
 
 
-def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, imgsz: int = 320) -> dict:
-    """Held-out metrics at the data's resolution, ultralytics' own test-split figures and CPU ms."""
+def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, imgsz: int = 320,
+             extra=()) -> dict:
+    """Held-out metrics at the data's resolution, ultralytics' own test-split figures and CPU ms;
+    with ``extra`` dataset roots, their test splits too (at their resolution and at 84 x 84)."""
     from torchrl_causal.perception.dataset import evaluate_detector, load_views
     from torchrl_causal.perception.yolo import YoloGoalDetector
 
@@ -221,19 +263,24 @@ def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, im
         "ms_per_frame_84x84_b1": ms(small[:1], reps),
     }
     # the test views rendered at 84 x 84 (the DQN's camera)
-    from torchrl_causal.perception.dataset import render_views
-
-    meta = json.loads((data_root / "meta.json").read_text())
-    views84 = list(render_views("test", len(views), seed=int(meta.get("seed", 0)), image_size=84,
-                                layout_seed=int(meta.get("layout_seed", 0))))
-    ours84 = evaluate_detector(det, views84, conf_threshold=0.7)
+    ours84 = evaluate_detector(det, _views84(data_root, "test", len(views)), conf_threshold=0.7)
+    keys = ("precision", "recall", "map50", "image_accuracy")
+    extra_test = {}
+    for root in map(Path, extra):
+        ev = load_views(root, "test")
+        extra_test[str(root)] = {
+            "full": {k: evaluate_detector(det, ev, conf_threshold=0.7)[k] for k in keys},
+            "84x84": {k: evaluate_detector(det, _views84(root, "test", len(ev)),
+                                           conf_threshold=0.7)[k] for k in keys},
+        }
     raw = evaluate_detector(YoloGoalDetector(weights, imgsz=int(imgsz), calibration=None), views,
                             conf_threshold=0.7, batch_size=16)
     return {
         "calibration": None if det.calibration is None else list(det.calibration),
         "test_rule07": ours,
         "test_rule07_raw_scores": {k: raw[k] for k in ("precision", "recall", "image_accuracy")},
-        "test_rule07_84x84": {k: ours84[k] for k in ("precision", "recall", "map50", "image_accuracy")},
+        "test_rule07_84x84": {k: ours84[k] for k in keys},
+        **({"extra_test_rule07": extra_test} if extra_test else {}),
         "test_ultralytics": ul,
         "cpu": timing,
         "thesis": THESIS,
@@ -252,7 +299,8 @@ def main(argv=None):
         from torchrl_causal.perception.yolo import load_sidecar
 
         imgsz = load_sidecar(weights).get("imgsz", a.imgsz)
-        metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps, imgsz=imgsz)
+        metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps, imgsz=imgsz,
+                           extra=a.extra_data)
         print(json.dumps(metrics, indent=1))
         return metrics
     if a.calibrate_only:
@@ -260,12 +308,13 @@ def main(argv=None):
 
         weights = Path(a.weights) if a.weights else DEFAULT_WEIGHTS
         sidecar = load_sidecar(weights)
-        sidecar["calibration"], sidecar["calibration_small"] = calibrate(weights, data_root, meta)
+        sidecar["calibration"], sidecar["calibration_small"] = calibrate(
+            weights, data_root, meta, a.extra_data)
         sidecar["calibration_command"] = "python recipes/train_detector.py " + " ".join(
             shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv))
         weights.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
         metrics = evaluate(weights, data_root, threads=a.threads, reps=a.bench_reps,
-                           imgsz=sidecar.get("imgsz", a.imgsz))
+                           imgsz=sidecar.get("imgsz", a.imgsz), extra=a.extra_data)
         # the CPU timing of the training run stays (calibration changes no cost)
         metrics.pop("cpu", None)
         sidecar["metrics"] = {**sidecar.get("metrics", {}), **metrics}
@@ -289,6 +338,7 @@ def main(argv=None):
         ),
         "seed": a.seed,
         "data": meta,
+        "extra_data": [json.loads((Path(e) / "meta.json").read_text()) for e in a.extra_data],
         "epochs": a.epochs,
         "imgsz": a.imgsz,
         "batch": a.batch,
@@ -319,10 +369,12 @@ def main(argv=None):
         print(f"weights: {out} ({out.stat().st_size / 1e6:.1f} MB)")
     else:
         out = best
-    sidecar["calibration"], sidecar["calibration_small"] = calibrate(out, data_root, meta)
+    sidecar["calibration"], sidecar["calibration_small"] = calibrate(out, data_root, meta,
+                                                                     a.extra_data)
     if a.out:  # the detector reads its calibration from the sidecar
         out.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
-    metrics = evaluate(out, data_root, threads=a.threads, reps=a.bench_reps, imgsz=a.imgsz)
+    metrics = evaluate(out, data_root, threads=a.threads, reps=a.bench_reps, imgsz=a.imgsz,
+                       extra=a.extra_data)
     sidecar["metrics"] = metrics
     if a.out:
         out.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")

@@ -14,6 +14,7 @@ os.environ.setdefault("YOLO_OFFLINE", "1")
 import numpy as np
 import pytest
 import torch
+import yaml
 
 pytest.importorskip("ultralytics")  # the perception extra (make test installs it)
 
@@ -104,12 +105,17 @@ def test_tiny_offline_training_end_to_end(tmp_path):
     """A few dozen images at imgsz 96, one epoch, through the recipe: weights + sidecar + metrics."""
     out = tmp_path / "w" / "goal.pt"
     env = dict(os.environ, YOLO_OFFLINE="1", YOLO_CONFIG_DIR=str(tmp_path / "cfg"), MUJOCO_GL="egl")
+    # a second dataset of close-ups joins the training (--extra-data)
+    from torchrl_causal.perception.dataset import write_datasets
+
+    write_datasets(tmp_path / "close", n_train=8, n_val=4, n_test=4, seed=9, image_size=(72, 96),
+                   goal_distance=(0.3, 1.2), progress=False)
     cmd = [
         sys.executable, str(ROOT / "recipes" / "train_detector.py"),
         "--data", str(tmp_path / "data"), "--n-train", "32", "--n-val", "8", "--n-test", "8",
         "--image-size", "72", "96", "--epochs", "1", "--imgsz", "96", "--batch", "8",
         "--threads", "1", "--project", str(tmp_path / "runs"), "--name", "tiny",
-        "--out", str(out), "--bench-reps", "1",
+        "--out", str(out), "--bench-reps", "1", "--extra-data", str(tmp_path / "close"),
     ]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
@@ -118,11 +124,28 @@ def test_tiny_offline_training_end_to_end(tmp_path):
     assert side["epochs"] == 1 and side["imgsz"] == 96 and side["data"]["counts"]["train"] == 32
     for k in ("precision", "recall", "map50"):
         assert k in side["metrics"]["test_rule07"]
+    # both train folders went into the data.yaml ultralytics trained on; the close-ups'
+    # meta and held-out metrics are in the sidecar
+    trained_on = yaml.safe_load((tmp_path / "runs" / "tiny_data.yaml").read_text())["train"]
+    assert trained_on == [str((tmp_path / d / "yolo" / "images" / "train").resolve())
+                          for d in ("data", "close")]
+    assert side["extra_data"][0]["view_options"]["goal_distance"] == [0.3, 1.2]
+    extra = side["metrics"]["extra_test_rule07"][str(tmp_path / "close")]
+    assert set(extra) == {"full", "84x84"} and "precision" in extra["84x84"]
     assert "held-out test" in r.stdout
     det = YoloGoalDetector(out)
     assert det.imgsz == 96
     boxes, scores = det(torch.zeros(2, 72, 96, 3, dtype=torch.uint8))
     assert boxes.shape == (2, 5, 4)
+
+
+def test_extra_data_that_is_not_a_dataset_is_named_before_training(tmp_path, capsys):
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import train_detector
+
+    with pytest.raises(SystemExit):
+        train_detector.parse_args(["--data", str(tmp_path), "--extra-data", str(tmp_path / "x")])
+    assert "--extra-data" in capsys.readouterr().err
 
 
 def test_missing_and_corrupt_weights(tmp_path):
