@@ -36,7 +36,11 @@ of one invocation only.
 Usage::
 
     python benchmarks/training.py [--frames 1000] [--envs 4] [--ratios 0.25 1] [--threads N]
-        [--overlap off|on|both] [--single-env-only] [--levers]
+        [--overlap off|on|both] [--single-env-only] [--levers] [--device cuda]
+
+``--device cuda`` puts the Q-network, the buffer samples, the gate and the timed
+update on the GPU (the recipe's ``device=cuda``; the simulator and the feature
+stack stay on the CPU); device work is synchronised before each timing.
 """
 
 from __future__ import annotations
@@ -66,19 +70,27 @@ def _cfg(variant: str, overrides: list[str]):
         return compose(config_name=variant, overrides=overrides)
 
 
+def _sync() -> None:
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()  # time the device's work, not its queueing
+
+
 def _median_ms(fn, n: int, warmup: int = 5) -> float:
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(n):
+        _sync()
         t0 = time.perf_counter()
         fn()
+        _sync()
         times.append(time.perf_counter() - t0)
     return 1000.0 * float(np.median(times))
 
 
-def measure_limit(n_envs: int, steps: int = 200) -> dict:
-    """Each part of a training frame timed alone (median ms)."""
+def measure_limit(n_envs: int, steps: int = 200, device: str = "cpu") -> dict:
+    """Each part of a training frame timed alone (median ms); the network, the gate and
+    the update on ``device``, the simulator and the features on the CPU."""
     import recipe_utils as ru
     from tensordict.nn import TensorDictSequential
     from torchrl.envs.utils import step_mdp
@@ -102,21 +114,22 @@ def measure_limit(n_envs: int, steps: int = 200) -> dict:
 
     full_ms = _median_ms(stepper(env), steps)
     base_ms = _median_ms(stepper(base), steps)
-    actor, gate, hook = recipe.build_agent(cfg, variant, env, "cpu")
+    actor, gate, hook = recipe.build_agent(cfg, variant, env, device)
     policy = TensorDictSequential(actor, gate)
     obs = env.reset()
     acting = {}
     for n in sorted({1, n_envs}):
         batch = obs.expand(n).clone() if n > 1 else obs
 
-        def act(b=batch):
+        def act(b=batch):  # the observation goes to the device, as in the collector
             with torch.no_grad():
-                policy(b.clone(False))
+                policy(b.clone(False).to(device))
 
         acting[n] = _median_ms(act, steps)
     loss, optim = recipe.build_loss(cfg, actor, env)
-    rollout = env.rollout(40, policy, break_when_any_done=False)
-    sample = rollout[torch.randint(0, 40, (cfg.buffer.batch_size,))]
+    rollout = env.rollout(40, lambda td: policy(td.to(device)).to("cpu"),
+                          break_when_any_done=False)
+    sample = rollout[torch.randint(0, 40, (cfg.buffer.batch_size,))].to(device)
     from torchrl.objectives import HardUpdate
 
     updater = HardUpdate(loss, value_network_update_interval=cfg.loss.target_update_interval)
@@ -317,7 +330,7 @@ def limit_fps(parts: dict, ratio: float, n_envs: int) -> float:
 
 
 def run(variant: str, frames: int, ratio: float, n_envs: int, out: Path,
-        threads: int | None, overlap: bool = False) -> dict:
+        threads: int | None, overlap: bool = False, device: str = "cpu") -> dict:
     overrides = [
         f"output_dir={out}", f"collector.total_frames={frames}", "eval.episodes=0",
         "eval.final_episodes=0", "eval.keep_best=false", "checkpoint.interval_frames=0",
@@ -325,7 +338,7 @@ def run(variant: str, frames: int, ratio: float, n_envs: int, out: Path,
         "loss.learning_starts=200", "loss.target_update_interval=50",
         f"exploration.annealing_frames={frames}", f"loss.updates_per_frame={ratio}",
         f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs}",
-        f"collector.overlap={str(overlap).lower()}",
+        f"collector.overlap={str(overlap).lower()}", f"device={device}",
     ]
     if threads:
         overrides.append(f"threads={threads}")
@@ -343,6 +356,9 @@ def main(argv=None) -> list[dict]:
                    help="collector.overlap of the fps runs (both: off and on, paired)")
     p.add_argument("--single-env-only", action="store_true",
                    help="skip the --envs runs (1 env only)")
+    p.add_argument("--device", default="cpu",
+                   help="where the network, the buffer samples and the gate run (cpu, cuda, "
+                        "cuda:N; the simulator stays on the CPU)")
     p.add_argument("--levers", action="store_true",
                    help="also time the CPU levers (inference mode, channels-last, torch.compile)")
     args = p.parse_args(argv)
@@ -352,6 +368,10 @@ def main(argv=None) -> list[dict]:
         p.error(f"Invalid option --envs={args.envs}: expected >= 2 (1 env is always measured)")
     if any(r <= 0 for r in args.ratios):
         p.error(f"Invalid option --ratios={args.ratios}: replay ratios must be > 0")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error(f"Invalid option --device={args.device}: CUDA is not available on this machine")
+    if not (args.device == "cpu" or args.device.startswith("cuda")):
+        p.error(f"Invalid option --device={args.device}: expected cpu, cuda or cuda:N")
     if args.threads:
         torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -361,7 +381,7 @@ def main(argv=None) -> list[dict]:
         figures.append(obj)
         print(json.dumps(obj), flush=True)
 
-    parts = measure_limit(args.envs)
+    parts = measure_limit(args.envs, device=args.device)
     env_counts = (1,) if args.single_env_only else (1, args.envs)
     overlaps = {"off": (False,), "on": (True,), "both": (False, True)}[args.overlap]
     emit({
@@ -372,6 +392,8 @@ def main(argv=None) -> list[dict]:
         "update_ms": round(parts["update_ms"], 3),
         "limit_fps": {f"ratio_{r}_envs_{n}": round(limit_fps(parts, r, n), 2)
                       for r in args.ratios for n in env_counts},
+        "device": args.device,
+        "gpu": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else None,
         "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
         "python": platform.python_version(), "torch": torch.__version__,
     })
@@ -385,7 +407,7 @@ def main(argv=None) -> list[dict]:
                                          for o in overlaps]:
                     i += 1
                     s = run(variant, args.frames, ratio, n, Path(tmp) / str(i), args.threads,
-                            overlap)
+                            overlap, args.device)
                     fps = s["frames"] / s["loop_seconds"]
                     # the limit of this run: its own gradient steps per frame (none
                     # are taken before loss.learning_starts)
