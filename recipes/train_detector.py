@@ -268,11 +268,10 @@ def evaluate(weights: Path, data_root: Path, *, threads: int, reps: int = 20, im
     extra_test = {}
     for root in map(Path, extra):
         ev = load_views(root, "test")
-        extra_test[str(root)] = {
-            "full": {k: evaluate_detector(det, ev, conf_threshold=0.7)[k] for k in keys},
-            "84x84": {k: evaluate_detector(det, _views84(root, "test", len(ev)),
-                                           conf_threshold=0.7)[k] for k in keys},
-        }
+        full = evaluate_detector(det, ev, conf_threshold=0.7)
+        small = evaluate_detector(det, _views84(root, "test", len(ev)), conf_threshold=0.7)
+        extra_test[str(root)] = {"full": {k: full[k] for k in keys},
+                                 "84x84": {k: small[k] for k in keys}}
     raw = evaluate_detector(YoloGoalDetector(weights, imgsz=int(imgsz), calibration=None), views,
                             conf_threshold=0.7, batch_size=16)
     return {

@@ -50,6 +50,11 @@ def _filename(t) -> str | None:
     return str(name) if name else None
 
 
+def _row_bytes(t: torch.Tensor) -> int:
+    """Bytes of one row (one index of the leading dimension) of a contiguous tensor."""
+    return t[0].numel() * t.element_size() if t.shape[0] else 0
+
+
 def _copy_file_prefix(src: str, dst: str, nbytes: int) -> None:
     """Copies the first ``nbytes`` of ``src`` over the start of ``dst`` (kernel side)."""
     with open(src, "rb") as fin, open(dst, "r+b") as fout:
@@ -70,7 +75,7 @@ def _write_rows(src: torch.Tensor, dst: str, rows: int) -> None:
     """Writes ``src[:rows]`` (any device) to the start of the raw file ``dst``."""
     if rows == 0:
         return
-    row_bytes = max(1, src[0].numel() * src.element_size())
+    row_bytes = max(1, _row_bytes(src))
     step = max(1, _CHUNK_BYTES // row_bytes)
     with open(dst, "r+b") as fout:
         for start in range(0, rows, step):
@@ -83,7 +88,7 @@ def _read_rows(src: str, dst: torch.Tensor, rows: int) -> None:
     """Reads the first ``rows`` rows of the raw file ``src`` into ``dst[:rows]``."""
     if rows == 0:
         return
-    row_bytes = dst[0].numel() * dst.element_size()
+    row_bytes = _row_bytes(dst)
     step = max(1, _CHUNK_BYTES // max(1, row_bytes))
     with open(src, "rb") as fin:
         for start in range(0, rows, step):
@@ -113,7 +118,8 @@ class FilledRowsCheckpointer(TensorStorageCheckpointer):
 
     The rows ``[0, len)`` are the filled ones for the round-robin writers a
     ``TensorDictReplayBuffer`` uses; a writer that fills rows out of order (a
-    prioritised max-value writer) must keep TorchRL's checkpointer.
+    prioritised max-value writer) must keep TorchRL's checkpointer. Storages
+    with ``ndim > 1`` fall back to TorchRL's behaviour too.
 
     Example:
         >>> import tempfile, torch
@@ -138,6 +144,7 @@ class FilledRowsCheckpointer(TensorStorageCheckpointer):
         data = getattr(storage, "_storage", None)
         return bool(
             self._save_hooks or self._load_hooks
+            or getattr(storage, "ndim", 1) != 1  # multi-dim storages fill rows differently
             # a bare tensor or a pytree (an uninitialized storage holds None)
             or (data is not None and not isinstance(data, TensorDictBase))
         )
@@ -160,8 +167,7 @@ class FilledRowsCheckpointer(TensorStorageCheckpointer):
                 raise RuntimeError(f"leaf {key!r} of the saved storage has no file")
             src_file = _filename(src)
             if src_file is not None and src.is_contiguous():
-                row_bytes = src[0].numel() * src.element_size() if src.shape[0] else 0
-                _copy_file_prefix(src_file, dst_file, rows * row_bytes)
+                _copy_file_prefix(src_file, dst_file, rows * _row_bytes(src))
             else:
                 _write_rows(src, dst_file, rows)
         del dst_td
@@ -187,9 +193,8 @@ class FilledRowsCheckpointer(TensorStorageCheckpointer):
         for key, src, dst in _leaf_pairs(saved, dst_td):
             src_file = _filename(src)
             dst_file = _filename(dst)
-            row_bytes = src[0].numel() * src.element_size() if src.shape[0] else 0
             if dst_file is not None and dst.is_contiguous():
-                _copy_file_prefix(src_file, dst_file, rows * row_bytes)
+                _copy_file_prefix(src_file, dst_file, rows * _row_bytes(src))
             else:
                 _read_rows(src_file, dst, rows)
         del saved
