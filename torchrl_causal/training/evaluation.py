@@ -16,7 +16,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
-__all__ = ["evaluate", "seed_transforms", "OUTCOME_KEYS", "env_max_steps"]
+__all__ = ["evaluate", "seed_transforms", "OUTCOME_KEYS", "env_max_steps", "spl_of"]
 
 #: What each outcome of an episode is read from (``("next", key)`` of its steps).
 OUTCOME_KEYS: dict[str, str] = {
@@ -86,6 +86,8 @@ def evaluate(
     *,
     max_steps: int | None = None,
     outcome_keys: Mapping[str, str] | None = None,
+    spl: bool | None = None,
+    per_episode: bool = False,
 ) -> dict:
     """Greedy episodes of ``policy`` on ``env``.
 
@@ -98,11 +100,22 @@ def evaluate(
             else 1000).
         outcome_keys: ``{"success" | "crash" | "out_of_bounds": key}`` overrides
             of :data:`OUTCOME_KEYS`; a key the env does not write counts as False.
+        spl: also measure SPL (Success weighted by Path Length, Anderson et al.
+            2018): per episode ``S * l / max(p, l)``, ``l`` the
+            :class:`~torchrl_causal.envs.oracle.ShortestPathPlanner`'s step count
+            from the episode's start, ``p`` the steps taken. ``None`` (default):
+            whenever the env is (over) a kinematic
+            :class:`~torchrl_causal.envs.DroneNavEnv`.
+        per_episode: also return ``episodes``: one dict per episode
+            (``success``, ``crash``, ``out_of_bounds``, ``steps``, ``reward``,
+            ``oracle_steps``, ``spl``).
 
     Returns:
         ``success_rate``, ``mean_reward``, ``collisions``, ``out_of_bounds``,
         ``mean_length`` and ``steps_to_goal`` (mean length of the successful
-        episodes; NaN when none succeeded).
+        episodes; NaN when none succeeded); with SPL also ``spl`` (mean over the
+        episodes whose oracle plan was found) and ``oracle_steps`` (their mean
+        shortest-path length).
 
     Raises:
         ValueError: ``episodes`` is not a positive int.
@@ -124,12 +137,19 @@ def evaluate(
         raise ValueError(f"episodes must be an int > 0, got {episodes!r}")
     keys = {**OUTCOME_KEYS, **(outcome_keys or {})}
     steps = max_steps or env_max_steps(env)
+    planner = _spl_planner(env) if spl or spl is None else None
+    if spl and planner is None:
+        raise ValueError("evaluate(spl=True) needs an env over a kinematic DroneNavEnv")
     env.set_seed(int(seed))
     seed_transforms(env, seed)
-    rewards, successes, crashes, exits, lengths = [], [], [], [], []
+    rewards, successes, crashes, exits, lengths, oracle = [], [], [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
-            td = env.rollout(steps, policy, break_when_any_done=True)
+            start = env.reset()
+            if planner is not None:
+                oracle.append(_oracle_steps(planner))
+            td = env.rollout(steps, policy, break_when_any_done=True, auto_reset=False,
+                             tensordict=start)
             nxt = td["next"]
             rewards.append(float(nxt["reward"].sum()))
             lengths.append(td.numel())
@@ -137,7 +157,7 @@ def evaluate(
             crashes.append(_flag(nxt, keys["crash"]))
             exits.append(_flag(nxt, keys["out_of_bounds"]))
     to_goal = [n for n, ok in zip(lengths, successes) if ok]
-    return {
+    out = {
         "success_rate": float(np.mean(successes)),
         "mean_reward": float(np.mean(rewards)),
         "collisions": int(np.sum(crashes)),
@@ -145,3 +165,49 @@ def evaluate(
         "mean_length": float(np.mean(lengths)),
         "steps_to_goal": float(np.mean(to_goal)) if to_goal else float("nan"),
     }
+    spls = [spl_of(ok, p, l) for ok, p, l in zip(successes, lengths, oracle)]
+    if planner is not None:
+        known = [v for v in spls if not np.isnan(v)]
+        out["spl"] = float(np.mean(known)) if known else float("nan")
+        found = [v for v in oracle if not np.isnan(v)]
+        out["oracle_steps"] = float(np.mean(found)) if found else float("nan")
+    if per_episode:
+        out["episodes"] = [
+            {"success": ok, "crash": c, "out_of_bounds": o, "steps": p, "reward": r,
+             "oracle_steps": oracle[i] if oracle else float("nan"),
+             "spl": spls[i] if spls else float("nan")}
+            for i, (ok, c, o, p, r) in enumerate(zip(successes, crashes, exits, lengths, rewards))
+        ]
+    return out
+
+
+def spl_of(success: bool, steps: int, oracle_steps: float) -> float:
+    """One episode's SPL term ``S * l / max(p, l)`` (NaN when ``l`` is unknown).
+
+    Example:
+        >>> spl_of(True, 20, 12), spl_of(False, 5, 12), spl_of(True, 12, 12)
+        (0.6, 0.0, 1.0)
+    """
+    if np.isnan(oracle_steps):
+        return float("nan")
+    if not success:
+        return 0.0
+    return float(oracle_steps / max(steps, oracle_steps)) if oracle_steps > 0 else 1.0
+
+
+def _spl_planner(env):
+    from ..envs.oracle import ShortestPathPlanner, base_drone_env
+
+    base = base_drone_env(env)
+    if base is None or base.execution != "kinematic":
+        return None
+    return ShortestPathPlanner(base)
+
+
+def _oracle_steps(planner) -> float:
+    from ..envs.oracle import PlanningError
+
+    try:
+        return float(len(planner.plan()))
+    except PlanningError:
+        return float("nan")
