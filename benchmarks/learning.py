@@ -1,7 +1,8 @@
 """Learning benchmark: does each variant learn to reach the goal on the thesis scene?
 
 Trains each of the five variants (``dqn_image``, ``cbn_defined``, ``cbn_p``,
-``cbn_pn``, ``cbn_v2``) on the thesis scene for a frame budget and a list of
+``cbn_pn``, ``cbn_v2``) and the two no-CBN controls with the same features
+(``dqn_features``, ``dqn_features_v2eps``) on the thesis scene for a frame budget and a list of
 seeds, with ``recipes/train.py``'s :func:`train` (one process per run, so
 runs can go in parallel with ``--jobs``), then prints one JSON object per
 variant (and writes them to ``<out>/learning.jsonl``):
@@ -32,7 +33,7 @@ folders (all ``seed_*`` folders found, or those of ``--seeds``).
 
 Usage::
 
-    python benchmarks/learning.py            # 5 variants x 5 seeds x 20,000 frames
+    python benchmarks/learning.py            # 7 variants x 5 seeds x 20,000 frames
     python benchmarks/learning.py --variants cbn_v2 dqn_image --seeds 0 1 --jobs 2
     python benchmarks/learning.py --preset thesis --heldout --override buffer.size=10000
     python benchmarks/learning.py --from-runs --out outputs/bench_learning
@@ -56,7 +57,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
 
-VARIANTS = ("dqn_image", "cbn_defined", "cbn_p", "cbn_pn", "cbn_v2")
+VARIANTS = ("dqn_image", "cbn_defined", "cbn_p", "cbn_pn", "cbn_v2", "dqn_features",
+            "dqn_features_v2eps")
 LAYOUT = "thesis"
 SUCCESS_TARGET = 0.9
 

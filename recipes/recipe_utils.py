@@ -4,9 +4,13 @@ Nothing here is method logic: the environment, features, Q-network, gate,
 causal learner and replay-buffer hook all come from :mod:`torchrl_causal`.
 This module only holds what a training *script* needs around them:
 
-* :data:`VARIANTS` -- the five paper variants and what each one switches on;
+* :data:`VARIANTS` -- the five paper variants and the two no-CBN controls,
+  and what each one switches on;
 * :func:`validate_config` -- every bad option is rejected with a
   ``ValueError`` naming it, before anything heavy is built;
+* :func:`exploration_kwargs`, :func:`eval_scenes`, :func:`transfer_cbns` --
+  the explorer's epsilon schedule, the evaluation scenes (the selection scene
+  first) and the transfer of saved CBNs into the causal learner;
 * :func:`prepare_run_dir` -- the run-folder layout (:data:`RUN_LAYOUT`: the
   training loop's :data:`~torchrl_causal.training.RUN_FILES` plus the recipe's
   plots, tables, CBNs and summary).
@@ -43,6 +47,11 @@ __all__ = [
     "resolve_resume",
     "check_writable",
     "gate_mode",
+    "exploration_kwargs",
+    "selection_scene",
+    "eval_scenes",
+    "transfer_source",
+    "transfer_cbns",
     "prepare_run_dir",
 ]
 
@@ -59,6 +68,10 @@ class Variant:
             (expert structures, CPTs fitted from data).
         default_gate: the gate algorithm the variant uses by default.
         label: the legend label used in the thesis's Fig. 5.4.
+        v2_epsilon: (variants without a CBN) scale epsilon by
+            ``1 - gate.prob_causal_model``: the random-action probability V2
+            (Alg. 4) effectively has, since it acts greedily with probability
+            ``prob_causal_model`` and epsilon-greedily otherwise.
     """
 
     name: str
@@ -66,9 +79,12 @@ class Variant:
     causal_mode: str | None
     default_gate: str | None
     label: str
+    v2_epsilon: bool = False
 
 
-#: The five variants of thesis sec. 5.2 / Fig. 5.4.
+#: The five variants of thesis sec. 5.2 / Fig. 5.4, then two controls without a
+#: CBN on the same Fig. 5.2 network and feature stack: plain epsilon-greedy, and
+#: epsilon-greedy with V2's effective epsilon.
 VARIANTS: dict[str, Variant] = {
     v.name: v
     for v in (
@@ -77,6 +93,9 @@ VARIANTS: dict[str, Variant] = {
         Variant("cbn_p", True, "learned", "p", "CBN-DQN P"),
         Variant("cbn_pn", True, "learned", "pn", "CBN-DQN PN"),
         Variant("cbn_v2", True, "learned", "v2", "CBN-DQN V2"),
+        Variant("dqn_features", True, None, None, "DQN (image + features)"),
+        Variant("dqn_features_v2eps", True, None, None, "DQN (image + features), V2 epsilon",
+                v2_epsilon=True),
     )
 }
 GATE_MODES = ("p", "pn", "v2")
@@ -85,6 +104,9 @@ SCENES = {
     "thesis": {"layout": "thesis"},  # the thesis scene (Fig. 2.3)
     "train": {"layout": "random", "split": "train"},  # random layouts, training split
     "heldout": {"layout": "random", "split": "heldout"},  # random layouts never trained on
+    # validation: random layouts of the training split from another world (layout_seed 1;
+    # training uses 0), for eval.select_layout -- selection never sees held-out layouts
+    "val": {"layout": "random", "split": "train", "layout_seed": 1},
 }
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
 #: ``preset`` names (config group ``recipes/config/preset``).
@@ -153,8 +175,13 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
         ValueError: for an unknown variant or gate mode, ``causal.k <= 0``,
             probabilities outside [0, 1], non-positive budgets, an unknown
             logger, ``checkpoint.resume=true`` without a checkpoint (or a
-            value other than true / false / auto), or an
-            unwritable output folder. The message names the option and value.
+            value other than true / false / auto), an ``eval.select_layout``
+            that is not among ``env.eval_layouts`` or is held out (keep_best
+            must not select on held-out layouts), an ``env.options`` key a
+            scene sets itself, a ``causal.transfer_from`` folder that is
+            missing, holds no CBN files or CBNs of another schema, or is given
+            to a variant without a CBN, or an unwritable output folder. The
+            message names the option and value.
     """
     variant = _get(cfg, "variant")
     _require(variant in VARIANTS, "variant", variant, f"one of {sorted(VARIANTS)}")
@@ -238,6 +265,9 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     _require(scene in SCENES, "env.layout", scene, f"one of {sorted(SCENES)}")
     for scene in _get(cfg, "env.eval_layouts") or []:
         _require(scene in SCENES, "env.eval_layouts", scene, f"scenes among {sorted(SCENES)}")
+    _check_scenes(cfg)
+    _check_transfer(cfg, v)
+    _check_teacher(cfg)
     logger = _get(cfg, "logger.backend")
     _require(logger in LOGGER_BACKENDS, "logger.backend", logger, f"one of {LOGGER_BACKENDS}")
     package = {"tensorboard": "tensorboard", "wandb": "wandb"}.get(logger)
@@ -302,6 +332,159 @@ def _check_can_learn(cfg: Mapping) -> None:
                  f"at most the run's {updates} gradient steps ((collector.total_frames - "
                  f"loss.learning_starts) x loss.updates_per_frame): the target network would "
                  f"never be updated")
+
+
+def _check_scenes(cfg: Mapping) -> None:
+    """``eval.select_layout``, ``eval.fixed_episodes`` and ``env.options`` against the scenes."""
+    layouts = list(_get(cfg, "env.eval_layouts") or [])
+    sel = _get(cfg, "eval.select_layout")
+    _require(sel is None or sel in layouts, "eval.select_layout", sel,
+             f"null (the first of env.eval_layouts) or one of env.eval_layouts={layouts}")
+    chosen = selection_scene(cfg)
+    if chosen is not None and SCENES[chosen].get("split") == "heldout" and (
+            sel is not None or _get(cfg, "eval.keep_best")):
+        raise ValueError(
+            f"Invalid option eval.select_layout={sel!r}: the selection scene {chosen!r} holds "
+            "held-out layouts, and keep_best must not select on held-out layouts; select a "
+            "scene of the training split, e.g. eval.select_layout=val with val in "
+            "env.eval_layouts.")
+    fixed = _get(cfg, "eval.fixed_episodes", False)
+    _require(isinstance(fixed, bool), "eval.fixed_episodes", fixed,
+             "true (the same episodes at every periodic evaluation) or false")
+    options = _get(cfg, "env.options") or {}
+    for scene in dict.fromkeys([_get(cfg, "env.layout"), *layouts]):
+        for key, value in SCENES[scene].items():
+            _require(key not in options, f"env.options.{key}", options.get(key),
+                     f"unset: the scene {scene!r} sets {key}={value!r} itself")
+
+
+def _check_teacher(cfg: Mapping) -> None:
+    """``teacher.*`` (the DAgger phase) and ``features.inputs`` / ``features.history``."""
+    rounds = _get(cfg, "teacher.rounds", 0)
+    _require(isinstance(rounds, int) and not isinstance(rounds, bool) and rounds >= 0,
+             "teacher.rounds", rounds, "an integer >= 0 (0: no teacher phase)")
+    history = _get(cfg, "features.history", 0)
+    _require(isinstance(history, int) and not isinstance(history, bool) and history >= 0,
+             "features.history", history, "an integer >= 0 (0: no action history)")
+    inputs = list(_get(cfg, "features.inputs", None) or ["causal_state"])
+    allowed = ("causal_state", "causal_features", "action_history")
+    for key in inputs:
+        _require(key in allowed, "features.inputs", inputs, f"keys among {allowed}")
+    _require(("action_history" in inputs) == (history > 0), "features.inputs", inputs,
+             f"action_history listed exactly when features.history > 0 "
+             f"(features.history={history})")
+    if not rounds:
+        return
+    for key in ("teacher.episodes_per_round", "teacher.max_expansions"):
+        val = _get(cfg, key)
+        _require(isinstance(val, int) and not isinstance(val, bool) and val >= 1, key, val,
+                 "an integer >= 1")
+    for key in ("teacher.updates_per_frame", "teacher.lr"):
+        val = _get(cfg, key)
+        _require(isinstance(val, (int, float)) and not isinstance(val, bool) and val > 0, key,
+                 val, "a number > 0")
+    for key in ("teacher.margin", "teacher.td_weight"):
+        val = _get(cfg, key)
+        _require(isinstance(val, (int, float)) and not isinstance(val, bool) and val >= 0, key,
+                 val, "a number >= 0")
+    beta = _get(cfg, "teacher.beta_decay")
+    _require(isinstance(beta, (int, float)) and 0 <= beta <= 1, "teacher.beta_decay", beta,
+             "a number in [0, 1]")
+    _require(_get(cfg, "env.num_envs", 1) == 1, "env.num_envs", _get(cfg, "env.num_envs"),
+             "1 with teacher.rounds > 0 (the oracle teacher flies one unbatched env)")
+    execution = (_get(cfg, "env.options") or {}).get("execution", "kinematic")
+    _require(execution == "kinematic", "env.options.execution", execution,
+             "kinematic with teacher.rounds > 0 (the oracle plans kinematic moves)")
+
+
+def _check_transfer(cfg: Mapping, variant: Variant) -> None:
+    """``causal.transfer_from`` / ``causal.transfer_relearn``: the CBN files are read here."""
+    relearn = _get(cfg, "causal.transfer_relearn", True)
+    _require(isinstance(relearn, bool), "causal.transfer_relearn", relearn,
+             "true (keep relearning from the transferred CBNs) or false (frozen)")
+    src = _get(cfg, "causal.transfer_from")
+    if src is None:
+        return
+    _require(isinstance(src, str) and bool(src), "causal.transfer_from", src,
+             "null or the path of a run folder or of a folder of CBN (XMLBIF) files")
+    _require(variant.causal_mode is not None, "causal.transfer_from", src,
+             f"null for variant={variant.name}, which has no CBN to transfer into "
+             "(use a cbn_* variant)")
+    from torchrl_causal.causal.io import load_cbn_folder
+    from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA
+
+    try:
+        load_cbn_folder(transfer_source(cfg), DEFAULT_SCHEMA, ACTION_NAMES)
+    except ValueError as err:
+        raise ValueError(_transfer_error(src, err)) from None
+
+
+def _transfer_error(src: Any, err: Exception) -> str:
+    return (f"Invalid option causal.transfer_from={src!r}: {err} (expected a run folder of a "
+            "CBN variant, whose cbns/last holds its CBNs, or a folder of XMLBIF files)")
+
+
+def exploration_kwargs(cfg: Mapping, variant: Variant) -> dict:
+    """The epsilon schedule of the explorer (:class:`~torchrl.modules.EGreedyModule`
+    or the CBN gate): ``eps_init``, ``eps_end`` and ``annealing_num_steps`` from
+    ``exploration.*``; for a ``v2_epsilon`` variant (``dqn_features_v2eps``)
+    ``eps_init`` and ``eps_end`` are scaled by ``1 - gate.prob_causal_model``.
+    """
+    scale = 1.0 - float(_get(cfg, "gate.prob_causal_model")) if variant.v2_epsilon else 1.0
+    return dict(eps_init=float(_get(cfg, "exploration.eps_init")) * scale,
+                eps_end=float(_get(cfg, "exploration.eps_end")) * scale,
+                annealing_num_steps=int(_get(cfg, "exploration.annealing_frames")))
+
+
+def selection_scene(cfg: Mapping) -> str | None:
+    """The scene of the periodic evaluations that ``eval.keep_best`` selects on:
+    ``eval.select_layout``, or when null the first of ``env.eval_layouts``."""
+    layouts = list(_get(cfg, "env.eval_layouts") or [])
+    return _get(cfg, "eval.select_layout") or (layouts[0] if layouts else None)
+
+
+def eval_scenes(cfg: Mapping) -> list[str]:
+    """``env.eval_layouts`` with :func:`selection_scene` first (the training loop
+    evaluates the first evaluation env periodically and keeps the best on it)."""
+    layouts = list(_get(cfg, "env.eval_layouts") or [])
+    first = selection_scene(cfg)
+    return [first] + [s for s in layouts if s != first] if first is not None else []
+
+
+def transfer_source(cfg: Mapping) -> Path | None:
+    """The folder of CBN files ``causal.transfer_from`` names: a run folder's
+    ``cbns/last`` when it has one, else the folder itself; ``None`` when unset."""
+    src = _get(cfg, "causal.transfer_from")
+    if src is None:
+        return None
+    path = Path(str(src)).expanduser()
+    run_cbns = path / RUN_LAYOUT["cbns"] / "last"
+    return run_cbns if run_cbns.is_dir() else path
+
+
+def transfer_cbns(cfg: Mapping, learner, gates=()) -> bool:
+    """Starts ``learner`` from the CBNs of ``causal.transfer_from``
+    (:meth:`~torchrl_causal.causal.CausalLearner.transfer`; ``causal.transfer_relearn``:
+    keep relearning from them, or frozen) and hands the tables to ``gates``, so
+    the gate is active from the first frame.
+
+    Returns:
+        Whether CBNs were transferred (``False`` when ``causal.transfer_from`` is null).
+
+    Raises:
+        ValueError: naming ``causal.transfer_from`` and its path, for a folder
+            that cannot be transferred (see :func:`validate_config`).
+    """
+    folder = transfer_source(cfg)
+    if folder is None:
+        return False
+    try:
+        tables = learner.transfer(folder, relearn=_get(cfg, "causal.transfer_relearn", True))
+    except ValueError as err:
+        raise ValueError(_transfer_error(_get(cfg, "causal.transfer_from"), err)) from None
+    for gate in gates:
+        gate.set_tables(tables)
+    return True
 
 
 def gate_mode(cfg: Mapping, variant: Variant) -> str | None:

@@ -1,8 +1,10 @@
 """Run the thesis protocol (sec. 5.2) and draw its comparison figures and tables.
 
 Protocol (``--mode full``): the five variants (``dqn_image``, ``cbn_defined``,
-``cbn_p``, ``cbn_pn``, ``cbn_v2``; k = 200) x ``--seeds`` seeds x 700 episodes
-(thesis Fig. 5.4), and the k sweep 100 / 200 / 400 / 600 of ``cbn_v2``
+``cbn_p``, ``cbn_pn``, ``cbn_v2``; k = 200) and the two no-CBN controls on the
+same features (``dqn_features``, ``dqn_features_v2eps``; docs/recipes.rst,
+"Control variants") x ``--seeds`` seeds x 700 episodes (thesis Fig. 5.4;
+``--variants`` picks a subset), and the k sweep 100 / 200 / 400 / 600 of ``cbn_v2``
 (Fig. 5.3; the k = 200 runs are the ``cbn_v2`` runs). Each run is one job of a
 hydra multirun of ``recipes/train.py`` writing its own run folder under ``--root``::
 

@@ -40,6 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import recipe_utils as ru  # noqa: E402
+from torchrl_causal.schema import ACTION_NAMES  # noqa: E402
 import results  # noqa: E402
 
 CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
@@ -70,17 +71,32 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str, num
 
 
 def with_features(cfg: DictConfig, variant: ru.Variant, env):
-    """``env`` with the run's causal feature stack (``features.options``) for CBN variants;
-    ``env`` itself for the image-only DQN."""
-    if not variant.features:
-        return env
-    from torchrl.envs import TransformedEnv
+    """``env`` with the run's policy transforms (the causal feature stack
+    ``features.options``, and for ``features.history > 0`` the action history),
+    as :func:`policy_spec` describes them; ``env`` itself for the image-only DQN."""
+    from torchrl_causal.pretrained import with_policy_features
 
-    from torchrl_causal.transforms import make_causal_transforms
+    return with_policy_features(policy_spec(cfg, variant), env, seed=cfg.seed)
 
-    options = OmegaConf.to_container(cfg.features.options, resolve=True)
-    options.setdefault("seed", cfg.seed)
-    return TransformedEnv(env, make_causal_transforms(env, **options))
+
+def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = None):
+    """The run's :class:`~torchrl_causal.pretrained.PolicySpec`: what the policy reads
+    (``features.inputs``, ``features.history``) and how its explorer is built. The
+    recipe builds its agent from it and saves it as ``policy.json``."""
+    from torchrl_causal.pretrained import PolicySpec
+
+    eps = ru.exploration_kwargs(cfg, variant)
+    features = cfg.get("features", {})
+    inputs = list(features.get("inputs", ["causal_state"])) if variant.features else []
+    return PolicySpec(
+        image_size=cfg.env.image_size, n_actions=len(ACTION_NAMES), inputs=inputs,
+        history=int(features.get("history", 0)) if variant.features else 0,
+        features=OmegaConf.to_container(cfg.features.options, resolve=True),
+        explorer="egreedy" if variant.causal_mode is None else "cbn_gate",
+        gate_mode=ru.gate_mode(cfg, variant), prob_causal_model=cfg.gate.prob_causal_model,
+        threshold=cfg.gate.threshold, eps_init=eps["eps_init"], eps_end=eps["eps_end"],
+        annealing_frames=eps["annealing_num_steps"], provenance=provenance or {},
+    )
 
 
 def random_frames(cfg: DictConfig, variant: ru.Variant) -> int:
@@ -92,38 +108,29 @@ def random_frames(cfg: DictConfig, variant: ru.Variant) -> int:
 
 
 def build_agent(cfg: DictConfig, variant: ru.Variant, env, device: str):
-    """Q-network actor, explorer (CBN gate, Alg. 3/4, or epsilon-greedy), causal hook (or None)."""
-    from torchrl.modules import EGreedyModule, QValueActor
+    """Q-network actor, explorer (CBN gate, Alg. 3/4, or epsilon-greedy), causal hook (or None),
+    built from :func:`policy_spec` by :func:`torchrl_causal.pretrained.build_policy`."""
+    from torchrl_causal.pretrained import build_policy
 
-    from torchrl_causal.modules import CBNGate, ThesisQNet
-
-    n_actions = env.action_spec.space.n
-    n_features = env.observation_spec["causal_state"].shape[-1] if variant.features else 0
-    net = ThesisQNet(n_actions, n_features=n_features, device=device,
-                     image_size=(cfg.env.image_size, cfg.env.image_size))
-    in_keys = ["pixels", "causal_state"] if variant.features else ["pixels"]
-    actor = QValueActor(net, in_keys=in_keys, spec=env.action_spec_unbatched)
-    eps = dict(eps_init=cfg.exploration.eps_init, eps_end=cfg.exploration.eps_end,
-               annealing_num_steps=cfg.exploration.annealing_frames)
+    actor, explorer = build_policy(policy_spec(cfg, variant), env.action_spec_unbatched,
+                                   device=device, seed=cfg.seed)
     if variant.causal_mode is None:
-        return actor, EGreedyModule(env.action_spec_unbatched, **eps), None
+        return actor, explorer, None
 
     from torchrl_causal.causal import CausalLearner
     from torchrl_causal.data import CausalLearningHook
 
-    gate = CBNGate(ru.gate_mode(cfg, variant), prob_causal_model=cfg.gate.prob_causal_model,
-                   threshold=cfg.gate.threshold, seed=cfg.seed, device=device, **eps)
-    learner = CausalLearner(n_actions=n_actions, mode=variant.causal_mode,
+    learner = CausalLearner(n_actions=len(ACTION_NAMES), mode=variant.causal_mode,
                             backend=cfg.causal.backend,
                             **OmegaConf.to_container(cfg.causal.options, resolve=True))
     # cbn_defined: the first relearn (fitting the expert CBNs' CPTs) comes at the
     # end of the random warm-up, which the loop runs first
     warmup = random_frames(cfg, variant)
-    hook = CausalLearningHook(learner, k=cfg.causal.k, gates=[gate],
+    hook = CausalLearningHook(learner, k=cfg.causal.k, gates=[explorer],
                               background=cfg.causal.background,
                               first_relearn=warmup if variant.causal_mode == "defined" and warmup
                               else None)
-    return actor, gate, hook
+    return actor, explorer, hook
 
 
 def build_buffer(cfg: DictConfig, scratch: Path, device: str = "cpu"):
@@ -211,6 +218,46 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
     return TensorDictSequential(actor, explorer), env, cfg
 
 
+def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
+    """The teacher phase (``teacher.rounds > 0``): DAgger from the shortest-path oracle
+    (:class:`torchrl_causal.training.imitation.OracleImitation`) before the DQN phase.
+
+    Its transitions also go through the causal hook (one relearn on all of them), so
+    a CBN variant's gate is active when the DQN phase starts. The result (actor and
+    causal state, the per-round table ``imitation.csv``) is saved as
+    ``checkpoints/imitation.pt``; a resumed run loads it instead of teaching again.
+    """
+    if not cfg.teacher.rounds:
+        return None
+    from torchrl_causal.training.imitation import ImitationConfig, OracleImitation
+    from torchrl_causal.training.records import EpisodeCSV
+
+    ckpt = out / "checkpoints" / "imitation.pt"
+    if ckpt.is_file():
+        state = torch.load(ckpt, map_location=cfg.device, weights_only=False)
+        actor.load_state_dict(state["actor"])
+        if hook is not None and state.get("hook") is not None:
+            hook.load_state_dict(state["hook"])
+        return state["history"]
+    t = cfg.teacher
+    imitation = OracleImitation(env, actor, ImitationConfig(
+        rounds=t.rounds, episodes_per_round=t.episodes_per_round, beta_decay=t.beta_decay,
+        updates_per_frame=t.updates_per_frame, batch_size=cfg.buffer.batch_size, lr=t.lr,
+        margin=t.margin, td_weight=t.td_weight, max_expansions=t.max_expansions,
+        seed=cfg.seed, progress=cfg.progress), device=cfg.device)
+    history = imitation.run()
+    rows = EpisodeCSV(out / "imitation.csv", list(history[0]))
+    for row in history:
+        rows.write(row)
+    if hook is not None:  # the CBNs learn from the teacher phase's flights
+        hook.inv(imitation.buffer[:])
+        hook.relearn()
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"actor": actor.state_dict(), "history": history,
+                "hook": hook.state_dict() if hook is not None else None}, ckpt)
+    return history
+
+
 def loop_config(cfg: DictConfig, variant: ru.Variant):
     """The recipe's options as a :class:`~torchrl_causal.training.LoopConfig`."""
     from torchrl_causal.training import LoopConfig
@@ -227,6 +274,7 @@ def loop_config(cfg: DictConfig, variant: ru.Variant):
         checkpoint_interval_frames=cfg.checkpoint.interval_frames,
         stop_after_frames=cfg.checkpoint.stop_after_frames, seed=cfg.seed, device=cfg.device,
         progress=cfg.progress, overlap=cfg.collector.get("overlap", False),
+        eval_fixed_seed=cfg.eval.get("fixed_episodes", False),
     )
 
 
@@ -287,10 +335,13 @@ def train(cfg: DictConfig) -> dict:
     # Alg. 1, l. 1-3: the env, the Q-network, the gate and the causal learner
     env = build_env(cfg, variant, cfg.env.layout, cfg.device, num_envs=cfg.env.num_envs)
     actor, explorer, hook = build_agent(cfg, variant, env, cfg.device)
+    if hook is not None:  # causal.transfer_from: start from saved CBNs, the gate acts from frame 0
+        ru.transfer_cbns(cfg, hook.learner, hook.gates)
     loss, optim = build_loss(cfg, actor, env)
+    teacher = teach(cfg, env, actor, hook, out)
     # evaluation scenes, built when first used; the first is evaluated periodically
     eval_envs = {scene: (lambda s=scene: build_env(cfg, variant, s, cfg.device))
-                 for scene in cfg.env.eval_layouts}
+                 for scene in ru.eval_scenes(cfg)}  # the selection scene first
     loop = DQNLoop(
         env, actor, explorer, config=loop_config(cfg, variant), hook=hook, loss=loss,
         optimizer=optim, eval_envs=eval_envs, output_dir=out,
@@ -305,7 +356,19 @@ def train(cfg: DictConfig) -> dict:
         print(f"Stopped after {summary['frames']} frames (checkpoint.stop_after_frames); resume "
               f"with output_dir={out} checkpoint.resume=true")
         return summary
+    if teacher:
+        summary["teacher"] = {
+            "rounds": len(teacher), "frames": int(sum(r["frames"] for r in teacher)),
+            "labelled": int(sum(r["labelled"] for r in teacher)),
+            "seconds": float(sum(r["collect_seconds"] + r["train_seconds"] for r in teacher)),
+            "last_round": teacher[-1]}
     summary.update(write_outputs(cfg, variant, paths, hook))
+    spec = policy_spec(cfg, variant, provenance={
+        "run": str(out), "variant": cfg.variant, "seed": cfg.seed,
+        "frames": summary["frames"],
+        "teacher_frames": summary.get("teacher", {}).get("frames", 0),
+        "final_eval": summary.get("final_eval", {})})
+    (out / "policy.json").write_text(spec.to_json())
     paths["summary"].write_text(json.dumps(summary, indent=2, default=str))
     return summary
 

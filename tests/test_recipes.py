@@ -137,7 +137,7 @@ def test_moving_average_and_seed_bands(tmp_path):
 
 def test_reproduce_plan_covers_protocol(tmp_path):
     plan = reproduce.run_plan(tmp_path, "full", 3, list(ru.VARIANTS), [100, 200, 400, 600])
-    assert len(plan) == 5 * 3 + 3 * 3
+    assert len(plan) == len(ru.VARIANTS) * 3 + 3 * 3  # variants (controls too) + k sweep
     run = {r.run_dir: r for r in plan}[tmp_path / "variants" / "cbn_pn" / "seed_2"]
     argv = run.argv(reproduce.MODES["full"]["overrides"])
     assert argv[:3] == ["--config-name", "cbn_pn", "seed=2"]

@@ -14,6 +14,10 @@ State names are the schema's category labels; the ``known`` flag and the
 number of rows are kept in the JSON document (and in the learner's
 ``learner.json`` for XMLBIF).
 
+:func:`load_cbn_folder` reads a whole folder of them, one file per action, as
+:meth:`~torchrl_causal.causal.CausalLearner.save` writes it (the input of
+:meth:`~torchrl_causal.causal.CausalLearner.transfer`).
+
 Example:
     >>> import tempfile, os, numpy as np
     >>> from torchrl_causal.causal.inference import fit_cbn
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +41,7 @@ import numpy as np
 from torchrl_causal.causal.inference import CBN
 from torchrl_causal.schema import DEFAULT_SCHEMA, VariableSchema
 
-__all__ = ["save_cbn", "load_cbn", "FORMATS"]
+__all__ = ["save_cbn", "load_cbn", "load_cbn_folder", "FORMATS"]
 
 FORMATS = (".xmlbif", ".xml", ".json")
 JSON_FORMAT = "torchrl_causal.cbn/1"
@@ -140,3 +145,75 @@ def load_cbn(path: str | os.PathLike, schema: VariableSchema = DEFAULT_SCHEMA) -
     from pgmpy.readwrite import XMLBIFReader
 
     return CBN.from_pgmpy(XMLBIFReader(str(path)).get_model(), schema)
+
+
+def load_cbn_folder(
+    directory: str | os.PathLike,
+    schema: VariableSchema = DEFAULT_SCHEMA,
+    action_names: Sequence[str] | None = None,
+) -> dict[str, CBN]:
+    """Read a folder of CBNs, one file ``<action><suffix>`` per action.
+
+    The folder :meth:`~torchrl_causal.causal.CausalLearner.save` writes
+    (``<run>/cbns/last`` of a training run), or any folder of XMLBIF / JSON
+    files over the schema's nodes. The ``known`` flag and the row count of each
+    CBN come from the folder's ``learner.json`` when it has one; without it an
+    XMLBIF CBN counts as known.
+
+    Args:
+        directory: the folder.
+        schema: the variable schema every file's nodes and states must follow.
+        action_names: the actions that need a file (``None``: every file is read).
+
+    Returns:
+        ``{action_name: CBN}``, in ``action_names`` order when given.
+
+    Raises:
+        ValueError: naming the folder or file: the folder does not exist; it
+            holds no CBN file; a file's variables or states are not the schema's
+            (CBNs of another env); two files for one action; a file for an
+            action not in ``action_names``, or an action without a file.
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_causal.causal import CausalLearner
+        >>> folder = CausalLearner().save(tempfile.mkdtemp())
+        >>> cbns = load_cbn_folder(folder)
+        >>> len(cbns), cbns["forward"].known
+        (8, False)
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ValueError(f"{str(directory)!r} is not an existing folder")
+    files = sorted(p for p in directory.iterdir()
+                   if p.is_file() and p.suffix.lower() in FORMATS and p.name != "learner.json")
+    if not files:
+        raise ValueError(f"{str(directory)!r} holds no CBN file (*.xmlbif, *.xml or *.json)")
+    summary = directory / "learner.json"
+    meta = json.loads(summary.read_text()).get("actions", {}) if summary.is_file() else {}
+    cbns: dict[str, CBN] = {}
+    for path in files:
+        try:
+            cbn = load_cbn(path, schema)
+        except Exception as err:  # pgmpy parse errors, node / state mismatches
+            raise ValueError(
+                f"{str(path)!r} is not a CBN over the schema's variables {schema.node_names()} "
+                f"({type(err).__name__}: {err}); was it saved for another env or schema?"
+            ) from None
+        if path.stem in cbns:
+            raise ValueError(f"{str(directory)!r} holds two CBN files for {path.stem!r}")
+        info = meta.get(path.stem, {})
+        cbn.known = bool(info.get("known", cbn.known))
+        cbn.n_rows = int(info.get("n_rows", cbn.n_rows))
+        cbns[path.stem] = cbn
+    if action_names is None:
+        return cbns
+    names = list(action_names)
+    missing = [n for n in names if n not in cbns]
+    extra = [n for n in cbns if n not in names]
+    if missing or extra:
+        raise ValueError(
+            f"{str(directory)!r} must hold one CBN file per action {names}; "
+            f"missing: {missing}, unknown: {extra}"
+        )
+    return {n: cbns[n] for n in names}

@@ -14,6 +14,10 @@ class never varied (a constant reward says nothing about which states are
 risky). Constant state columns and parent configurations never seen are
 handled by the prior and never raise.
 
+:meth:`CausalLearner.transfer` (or :meth:`CausalLearner.from_saved`) starts a
+learner from CBNs saved elsewhere (e.g. by a run in another place): their
+structures and CPTs give tables at once, so the gate acts from the first frame.
+
 Example:
     >>> import torch
     >>> from torchrl_causal.causal import CausalLearner
@@ -44,7 +48,7 @@ import torch
 from torchrl_causal.causal.data import TransitionData
 from torchrl_causal.causal.expert import expert_dags as expert_dags_default
 from torchrl_causal.causal.inference import CBN, compile_tables, fit_cbn
-from torchrl_causal.causal.io import save_cbn
+from torchrl_causal.causal.io import load_cbn_folder, save_cbn
 from torchrl_causal.causal.structure import _check_options, learn_structure, time_tiers
 from torchrl_causal.causal.tables import RewardTables
 from torchrl_causal.schema import ACTION_NAMES, DEFAULT_SCHEMA, VariableSchema
@@ -148,6 +152,10 @@ class CausalLearner:
             ``action_0, action_1, ...``). With ``expert_dags`` they must be its keys.
 
     Attributes:
+        frozen: ``True`` after :meth:`transfer` with ``relearn=False``:
+            :meth:`relearn` then keeps the transferred CBNs (transitions are
+            still stored).
+        transferred_from: the folder of :meth:`transfer` (``None``: none).
         expert: the expert DAGs in use (``mode="defined"``) or given for
             reference, ``{action_name: [(source, target), ...]}`` in action
             order; ``None`` in ``"learned"`` mode without ``expert_dags``.
@@ -232,6 +240,10 @@ class CausalLearner:
         self._tables: RewardTables | None = None
         self.n_relearns = 0
         self.history: list[dict] = []
+        self.frozen = False
+        self.transferred_from: str | None = None
+        self._transferred: list[CBN | None] = [None] * n_actions  # transfer(): the CBNs read
+        self._from_transfer = [False] * n_actions  # action a holds its transferred CBN
 
     # ------------------------------------------------------------------ data
     def add(self, state_t, action, state_t1, reward) -> None:
@@ -254,27 +266,41 @@ class CausalLearner:
         return None
 
     def relearn(self) -> RewardTables:
-        """Learn/fit every action's CBN and compile the reward tables (thesis Alg. 2)."""
+        """Learn/fit every action's CBN and compile the reward tables (thesis Alg. 2).
+
+        After :meth:`transfer`, an action whose own data is still degenerate
+        keeps its transferred CBN; a :attr:`frozen` learner returns its tables
+        unchanged (no relearn is counted).
+        """
+        if self.frozen:
+            return self._tables
         t0 = time.perf_counter()
         record = {"relearn": self.n_relearns + 1, "frames": self.data.total_added, "actions": {}}
         for a, name in enumerate(self.action_names):
             rows = self.data.rows(a)
             why = self._degenerate(rows)
             info = {"n_rows": int(rows.shape[0]), "known": why is None, "reason": why}
-            if self.mode == "learned" and rows.shape[0] >= self.min_rows:
-                res = learn_structure(
-                    rows,
-                    self.schema,
-                    backend=self.backend,
-                    start_dag=self._dags[a] if self.warm_start else None,
-                    synchronous=self.synchronous,
-                    max_indegree=self.max_indegree,
-                    cardinality=self.cardinality,
-                )
-                self._dags[a] = list(res.edges)
-                info.update(score=res.score, seconds=res.seconds, deleted=[list(e) for e in res.deleted_edges])
-            cbn = fit_cbn(self._dags[a], rows, self.schema, prior=self.prior, known=why is None)
-            cbn.meta = {"action": name, "mode": self.mode}
+            self._from_transfer[a] = why is not None and self._transferred[a] is not None
+            if self._from_transfer[a]:
+                cbn = self._transferred[a]
+                self._dags[a] = list(cbn.edges)
+                info.update(known=cbn.known, reason=f"{why}; kept the transferred CBN")
+            else:
+                if self.mode == "learned" and rows.shape[0] >= self.min_rows:
+                    res = learn_structure(
+                        rows,
+                        self.schema,
+                        backend=self.backend,
+                        start_dag=self._dags[a] if self.warm_start else None,
+                        synchronous=self.synchronous,
+                        max_indegree=self.max_indegree,
+                        cardinality=self.cardinality,
+                    )
+                    self._dags[a] = list(res.edges)
+                    info.update(score=res.score, seconds=res.seconds,
+                                deleted=[list(e) for e in res.deleted_edges])
+                cbn = fit_cbn(self._dags[a], rows, self.schema, prior=self.prior, known=why is None)
+                cbn.meta = {"action": name, "mode": self.mode}
             self.cbns[a] = cbn
             info["edges"] = [list(e) for e in self._dags[a]]
             info["markov_blanket"] = cbn.markov_blanket()
@@ -343,13 +369,18 @@ class CausalLearner:
             },
             "data": self.data.state_dict(),
             "dags": [[list(e) for e in d] for d in self._dags],
+            "from_transfer": list(self._from_transfer),
             "n_relearns": self.n_relearns,
             "history": json.loads(json.dumps(self.history)),
             "tables": None if self._tables is None else self._tables.state_dict(),
         }
 
     def load_state_dict(self, sd: dict) -> None:
-        """Restore a :meth:`state_dict`; the CBNs are refitted from the restored data."""
+        """Restore a :meth:`state_dict`; the CBNs are refitted from the restored data.
+
+        An action that held its transferred CBN keeps it when this learner has
+        the same transfer (call :meth:`transfer` first, as a resumed run does).
+        """
         if sd["options"]["n_actions"] != self.n_actions:
             raise ValueError(
                 f"state dict is for n_actions={sd['options']['n_actions']}, this learner has {self.n_actions}"
@@ -367,13 +398,78 @@ class CausalLearner:
             self._tables = None
             self.cbns = [None] * self.n_actions
         else:
+            kept = list(sd.get("from_transfer") or [False] * self.n_actions)
             for a in range(self.n_actions):
+                self._from_transfer[a] = bool(kept[a]) and self._transferred[a] is not None
+                if self._from_transfer[a]:
+                    self.cbns[a] = self._transferred[a]
+                    continue
                 rows = self.data.rows(a)
                 self.cbns[a] = fit_cbn(self._dags[a], rows, self.schema, prior=self.prior,
                                        known=bool(sd["tables"]["known"][a]))
             self._tables = RewardTables.from_state_dict(sd["tables"], self.schema)
             if self.device is not None:
                 self._tables = self._tables.to(self.device)
+
+    def transfer(self, directory, *, relearn: bool = True) -> RewardTables:
+        """Start from the CBNs saved in ``directory``: structures and CPTs.
+
+        Reads one CBN per action (:func:`~torchrl_causal.causal.io.load_cbn_folder`:
+        the files :meth:`save` writes, e.g. a run's ``cbns/last``) and compiles
+        the tables at once, so a gate given :attr:`tables` is active from the
+        first frame.
+
+        Args:
+            directory: the folder of CBN files, ``<action>.xmlbif`` (or
+                ``.xml`` / ``.json``) for every action of this learner.
+            relearn: ``True``: keep relearning every ``k`` with the transferred
+                structures as the warm start (``mode="learned"``; in
+                ``"defined"`` mode the CPTs are refitted on them), an action
+                keeping its transferred CBN while its own data is degenerate
+                (fewer than ``min_rows`` transitions, or a constant reward).
+                ``False``: :attr:`frozen`, :meth:`relearn` changes nothing.
+
+        Returns:
+            The compiled tables (also :attr:`tables`).
+
+        Raises:
+            ValueError: naming the folder: it does not exist, holds no CBN
+                file, a file whose variables are not this learner's schema, or
+                not one file per action.
+
+        Example:
+            >>> import tempfile
+            >>> source = CausalLearner(min_rows=10)
+            >>> g = torch.Generator().manual_seed(0)
+            >>> s0, s1 = torch.randint(0, 2, (2, 200, 9), generator=g)
+            >>> source.add(s0, torch.zeros(200, dtype=torch.long), s1,
+            ...            torch.where(s1[:, 5] == 1, 50.0, -9.0))
+            >>> _ = source.relearn()
+            >>> folder = source.save(tempfile.mkdtemp())
+            >>> new = CausalLearner.from_saved(folder, relearn=False)
+            >>> torch.equal(new.tables.p_pos, source.tables.p_pos), new.frozen
+            (True, True)
+        """
+        if not isinstance(relearn, bool):
+            raise ValueError(f"relearn must be True or False, got {relearn!r}")
+        cbns = load_cbn_folder(directory, self.schema, self.action_names)
+        self._transferred = [cbns[name] for name in self.action_names]
+        self._from_transfer = [True] * self.n_actions
+        self.cbns = list(self._transferred)
+        self._dags = [list(c.edges) for c in self._transferred]
+        self._tables = compile_tables(self.cbns, self.schema, device=self.device)
+        self.frozen = not relearn
+        self.transferred_from = str(directory)
+        return self._tables
+
+    @classmethod
+    def from_saved(cls, directory, schema: VariableSchema = DEFAULT_SCHEMA, n_actions: int = 8,
+                   *, relearn: bool = True, **kwargs) -> "CausalLearner":
+        """A new learner (``CausalLearner(schema, n_actions, **kwargs)``) started by
+        :meth:`transfer` from the CBNs in ``directory``."""
+        learner = cls(schema, n_actions, **kwargs)
+        learner.transfer(directory, relearn=relearn)
+        return learner
 
     def save(self, directory, fmt: str = ".xmlbif") -> Path:
         """Write every action's CBN (``<action><fmt>``) plus ``learner.json`` to ``directory``.

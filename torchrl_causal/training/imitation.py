@@ -244,8 +244,9 @@ class OracleImitation:
         agreement with the teacher, the round's success and crash rates, beta,
         mean loss, seconds)."""
         cfg = self.config
-        torch.manual_seed(cfg.seed)
-        self.env.set_seed(cfg.seed)
+        if not self.history:  # a continued run (more rounds) keeps drawing new layouts
+            torch.manual_seed(cfg.seed)
+            self.env.set_seed(cfg.seed)
         bar = None
         if cfg.progress:
             from tqdm.auto import tqdm

@@ -99,6 +99,9 @@ class LoopConfig:
         reward_scale: rewards are multiplied by this inside the loss only.
         eval_interval_frames: frames between greedy evaluations (0: only at the end).
         eval_episodes: episodes of a periodic evaluation (0: none).
+        eval_fixed_seed: every periodic evaluation replays the same episodes
+            (one fixed seed: a fixed validation set, so ``keep_best`` compares
+            policies on equal terms) instead of new ones each time.
         final_eval_episodes: episodes per evaluation env after training (0: none).
         eval_max_steps: step limit of an evaluation episode (``None``: the env's
             ``max_steps``, else 1000).
@@ -153,6 +156,7 @@ class LoopConfig:
     reward_scale: float = 1.0
     eval_interval_frames: int = 2000
     eval_episodes: int = 5
+    eval_fixed_seed: bool = False
     final_eval_episodes: int = 20
     eval_max_steps: int | None = None
     keep_best: bool = True
@@ -201,7 +205,8 @@ class LoopConfig:
             bad("max_grad_norm", "None or a number > 0")
         if self.loss_function not in LOSS_FUNCTIONS:
             bad("loss_function", f"one of {LOSS_FUNCTIONS}")
-        for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer", "overlap"):
+        for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer", "overlap",
+                     "eval_fixed_seed"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "True or False")
         try:
@@ -498,7 +503,7 @@ class DQNLoop:
         evals = EpisodeCSV(
             self.paths["eval"],
             ["frames", "episodes", "layout", "success_rate", "mean_reward", "collisions",
-             "out_of_bounds", "mean_length", "steps_to_goal"],
+             "out_of_bounds", "mean_length", "steps_to_goal", "spl", "oracle_steps"],
         )
         relearns = EpisodeCSV(self.paths["relearns"], ["relearn", "frames", "episode"])
         return episodes, evals, relearns
@@ -821,8 +826,9 @@ class DQNLoop:
             return
         st["n_evals"] += 1
         name = next(iter(self.eval_envs))
+        n = 1 if cfg.eval_fixed_seed else st["n_evals"]  # fixed: the first evaluation's episodes
         res = evaluate(self.policy, self._eval_env(name), cfg.eval_episodes,
-                       seed=cfg.seed * 1009 + 31 * st["n_evals"], outcome_keys=self.outcome_keys,
+                       seed=cfg.seed * 1009 + 31 * n, outcome_keys=self.outcome_keys,
                        max_steps=cfg.eval_max_steps)
         self._recs[1].write({"frames": st["frames"], "episodes": st["episodes"], "layout": name,
                              **res})

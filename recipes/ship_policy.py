@@ -1,0 +1,94 @@
+"""Ship a finished run's policy as package data: ``python recipes/ship_policy.py RUN_DIR NAME``.
+
+Copies ``model.pt`` and ``explorer.pt`` of a run folder of ``recipes/train.py``
+into ``torchrl_causal/pretrained/policies/NAME/``, writes its ``policy.json``
+(the run's :class:`~torchrl_causal.pretrained.PolicySpec`, rebuilt from
+``config.yaml`` when the run predates ``policy.json``) and ``provenance.json``
+(the command, seed, frames, commit and the figures of the run's
+``summary.json``), so that ``torchrl_causal.pretrained.load_policy(NAME)``
+loads it. ``make generalist`` and ``make ship-thesis`` call it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+ROOT = Path(__file__).resolve().parents[1]
+DEST = ROOT / "torchrl_causal" / "pretrained" / "policies"
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
+         dest: Path = DEST) -> Path:
+    """Copies the policy of ``run_dir`` to ``dest/name``; returns that folder.
+
+    Raises:
+        FileNotFoundError: the run folder lacks ``config.yaml``, ``model.pt`` or
+            ``explorer.pt`` (named).
+        ValueError: ``name`` is not a plain folder name.
+    """
+    from omegaconf import OmegaConf
+
+    import recipe_utils as ru
+    import train
+
+    run_dir = Path(run_dir)
+    if not name or not name.replace("_", "").replace("-", "").isalnum():
+        raise ValueError(f"Invalid policy name={name!r}: use letters, digits, '-' and '_'")
+    for rel in ("config.yaml", "model.pt", "explorer.pt"):
+        if not (run_dir / rel).is_file():
+            raise FileNotFoundError(f"run folder {str(run_dir)!r} has no {rel}: is it a finished "
+                                    "run of recipes/train.py?")
+    cfg = OmegaConf.load(run_dir / "config.yaml")
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    provenance = {
+        "name": name,
+        "command": command or f"python recipes/train.py output_dir={run_dir}",
+        "variant": cfg.variant, "seed": int(cfg.seed),
+        "training_scene": cfg.env.layout,
+        "frames": summary.get("frames", cfg.collector.total_frames),
+        "teacher": summary.get("teacher"),
+        "loop_seconds": summary.get("loop_seconds"),
+        "selected_frames": summary.get("selected_frames"),
+        "final_eval": summary.get("final_eval"),
+        "commit": _commit(),
+        "notes": notes,
+    }
+    spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant], provenance=provenance)
+    out = dest / name
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(run_dir / "model.pt", out / "model.pt")
+    shutil.copyfile(run_dir / "explorer.pt", out / "explorer.pt")
+    (out / "policy.json").write_text(spec.to_json())
+    (out / "provenance.json").write_text(json.dumps(provenance, indent=2, default=str))
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run_dir", help="a finished run folder of recipes/train.py")
+    p.add_argument("name", help="the pretrained name (e.g. generalist, thesis)")
+    p.add_argument("--command", default=None, help="the command that made the run (provenance)")
+    p.add_argument("--notes", default="", help="free text for provenance.json")
+    a = p.parse_args(argv)
+    out = ship(a.run_dir, a.name, command=a.command, notes=a.notes)
+    print(f"Shipped {a.run_dir} as pretrained policy {a.name!r}: {out}")
+
+
+if __name__ == "__main__":
+    main()

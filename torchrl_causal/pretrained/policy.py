@@ -1,0 +1,259 @@
+"""A policy described by data: what it reads, how its network and explorer are built.
+
+:class:`PolicySpec` is the one construction path of every trained policy: the
+training recipe builds its agent from one, writes it as ``policy.json`` next to
+``model.pt`` / ``explorer.pt``, and :func:`load_policy_dir` (and so
+:func:`torchrl_causal.pretrained.load_policy`) rebuilds exactly the same
+modules from it -- without the recipe, in any TorchRL project.
+
+The observation a policy reads (``inputs``) is the image plus either the nine
+discretised variables (``causal_state``, thesis Fig. 5.2) or, for the
+generalist, the continuous nine values (``causal_features``) and the last
+actions (``action_history``, :class:`~torchrl_causal.transforms.ActionHistory`),
+concatenated into ``policy_features`` by TorchRL's ``CatTensors``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+__all__ = ["PolicySpec", "FEATURE_SCALES", "policy_transforms", "build_policy",
+           "load_policy_dir", "POLICY_FILES"]
+
+#: Divisors that bring each input key's values to order 1 inside the Q-network
+#: (``causal_features``: five depths and the goal distance in metres / 5, the
+#: goal angle in degrees / 30; the 0/1 flags and the altitude as they are).
+FEATURE_SCALES: dict[str, tuple[float, ...] | None] = {
+    "causal_state": None,
+    "causal_features": (5.0, 5.0, 5.0, 5.0, 5.0, 1.0, 5.0, 30.0, 1.0),
+    "action_history": None,
+}
+#: Files of a policy folder.
+POLICY_FILES = {"spec": "policy.json", "model": "model.pt", "explorer": "explorer.pt"}
+_EXPLORERS = ("egreedy", "cbn_gate")
+
+
+@dataclass
+class PolicySpec:
+    """Everything needed to rebuild a trained policy's modules.
+
+    Args:
+        image_size: side of the square ``pixels`` the network reads.
+        n_actions: size of the action space.
+        inputs: keys read beside ``pixels`` (empty: the image-only Fig. 5.1
+            network); among ``causal_state``, ``causal_features``,
+            ``action_history``.
+        history: length of :class:`~torchrl_causal.transforms.ActionHistory`
+            (needed when ``"action_history"`` is an input).
+        features: keyword arguments of
+            :func:`~torchrl_causal.transforms.make_causal_transforms`.
+        explorer: ``"egreedy"`` (TorchRL ``EGreedyModule``) or ``"cbn_gate"``
+            (:class:`~torchrl_causal.modules.CBNGate`).
+        gate_mode: the gate's algorithm (``"p"``, ``"pn"``, ``"v2"``).
+        prob_causal_model, threshold: the gate's parameters (thesis sec. 4.5).
+        eps_init, eps_end, annealing_frames: exploration schedule.
+        provenance: free-form record (command, seed, frames, commit, figures).
+
+    Example:
+        >>> spec = PolicySpec(inputs=["causal_features", "action_history"], history=4)
+        >>> spec.n_features, spec.actor_keys
+        (41, ['pixels', 'policy_features'])
+    """
+
+    image_size: int = 84
+    n_actions: int = 8
+    inputs: list = field(default_factory=lambda: ["causal_state"])
+    history: int = 0
+    features: dict = field(default_factory=dict)
+    explorer: str = "cbn_gate"
+    gate_mode: str | None = "v2"
+    prob_causal_model: float = 0.7
+    threshold: float = 0.75
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    annealing_frames: int = 8000
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.inputs = list(self.inputs)
+        unknown = [k for k in self.inputs if k not in FEATURE_SCALES]
+        if unknown:
+            raise ValueError(f"PolicySpec.inputs has unknown keys {unknown}: expected keys among "
+                             f"{sorted(FEATURE_SCALES)}")
+        if "action_history" in self.inputs and not (isinstance(self.history, int)
+                                                    and self.history >= 1):
+            raise ValueError(f"PolicySpec.history must be an int >= 1 when 'action_history' is "
+                             f"an input, got {self.history!r}")
+        if self.explorer not in _EXPLORERS:
+            raise ValueError(f"PolicySpec.explorer must be one of {_EXPLORERS}, got "
+                             f"{self.explorer!r}")
+        if self.explorer == "cbn_gate" and "causal_state" not in self.features_written():
+            raise ValueError("PolicySpec.explorer='cbn_gate' needs the feature stack "
+                             "(causal_state): give inputs beside the image")
+
+    def features_written(self) -> list[str]:
+        """Keys the policy's transforms write (empty for the image-only network)."""
+        if not self.inputs:
+            return []
+        keys = ["causal_features", "causal_state"]
+        if self.history:
+            keys.append("action_history")
+        return keys
+
+    @property
+    def n_features(self) -> int:
+        """Width of the vector the Q-network reads beside the image."""
+        width = {"causal_state": 9, "causal_features": 9,
+                 "action_history": self.history * self.n_actions}
+        return sum(width[k] for k in self.inputs)
+
+    @property
+    def actor_keys(self) -> list[str]:
+        """The actor's ``in_keys``."""
+        if not self.inputs:
+            return ["pixels"]
+        if len(self.inputs) == 1:
+            return ["pixels", self.inputs[0]]
+        return ["pixels", "policy_features"]
+
+    def feature_scale(self) -> list[float] | None:
+        """Per-value divisors of the Q-network's features (None: all ones)."""
+        scale, any_set = [], False
+        for k in self.inputs:
+            s = FEATURE_SCALES[k]
+            n = {"causal_state": 9, "causal_features": 9,
+                 "action_history": self.history * self.n_actions}[k]
+            any_set |= s is not None
+            scale += list(s) if s is not None else [1.0] * n
+        return scale if any_set else None
+
+    def to_json(self) -> str:
+        """The spec as JSON (what ``policy.json`` holds)."""
+        return json.dumps(asdict(self), indent=2, default=str)
+
+    @classmethod
+    def from_json(cls, text: str) -> "PolicySpec":
+        """Parses :meth:`to_json`'s output; unknown fields are an error naming them."""
+        data = json.loads(text)
+        known = set(cls.__dataclass_fields__)
+        extra = sorted(set(data) - known)
+        if extra:
+            raise ValueError(f"policy.json has unknown fields {extra}")
+        return cls(**data)
+
+
+def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> list:
+    """The transforms that write what ``spec``'s actor reads (empty for the image-only net).
+
+    Example:
+        >>> ts = policy_transforms(PolicySpec(inputs=["causal_features", "action_history"],
+        ...                                   history=2))
+        >>> [type(t).__name__ for t in ts]
+        ['Compose', 'ActionHistory', 'CatTensors']
+    """
+    from torchrl.envs import CatTensors
+
+    from ..transforms import make_causal_transforms
+    from ..transforms.history import ActionHistory
+
+    if not spec.inputs:
+        return []
+    options = dict(spec.features)
+    if seed is not None:
+        options.setdefault("seed", seed)
+    out = [make_causal_transforms(env, **options)]
+    if spec.history:
+        out.append(ActionHistory(spec.n_actions, length=spec.history))
+    if len(spec.inputs) > 1:
+        out.append(CatTensors(list(spec.inputs), "policy_features", del_keys=False))
+    return out
+
+
+def with_policy_features(spec: PolicySpec, env, seed: int | None = None):
+    """``env`` wrapped in :func:`policy_transforms` (``env`` itself when there are none)."""
+    from torchrl.envs import TransformedEnv
+
+    transforms = policy_transforms(spec, env, seed=seed)
+    if not transforms:
+        return env
+    tenv = TransformedEnv(env, transforms[0])
+    for t in transforms[1:]:
+        tenv.append_transform(t)
+    return tenv
+
+
+def build_policy(spec: PolicySpec, action_spec, *, device="cpu", seed: int | None = None):
+    """``(actor, explorer)``: the Q-network in a ``QValueActor`` and its explorer.
+
+    Args:
+        spec: the :class:`PolicySpec`.
+        action_spec: the env's (unbatched) action spec.
+        device: device of the parameters and the gate.
+        seed: seeds the explorer's random draws.
+
+    Example:
+        >>> from torchrl.data import Categorical
+        >>> actor, explorer = build_policy(PolicySpec(), Categorical(8))
+        >>> type(explorer).__name__, actor.in_keys
+        ('CBNGate', ['pixels', 'causal_state'])
+    """
+    from torchrl.modules import EGreedyModule, QValueActor
+
+    from ..modules import CBNGate, ThesisQNet
+
+    net = ThesisQNet(spec.n_actions, n_features=spec.n_features, device=device,
+                     image_size=(spec.image_size, spec.image_size),
+                     feature_scale=spec.feature_scale())
+    actor = QValueActor(net, in_keys=spec.actor_keys, spec=action_spec)
+    eps = dict(eps_init=spec.eps_init, eps_end=spec.eps_end,
+               annealing_num_steps=spec.annealing_frames)
+    if spec.explorer == "egreedy":
+        return actor, EGreedyModule(action_spec, **eps)
+    gate = CBNGate(spec.gate_mode, prob_causal_model=spec.prob_causal_model,
+                   threshold=spec.threshold, seed=seed, device=device, **eps)
+    return actor, gate
+
+
+def load_policy_dir(folder, *, env=None, device="cpu"):
+    """The policy saved in ``folder`` (``policy.json``, ``model.pt``, ``explorer.pt``).
+
+    Args:
+        folder: a policy folder (a finished run folder of ``recipes/train.py``,
+            or a shipped one).
+        env: the env to act in, *without* the policy's feature transforms
+            (they are appended); ``None``: no env is built.
+        device: device of the networks, the gate and the env outputs.
+
+    Returns:
+        ``(policy, env, spec)``: ``TensorDictSequential(actor, explorer)``, the
+        wrapped env (or None), the :class:`PolicySpec`.
+
+    Raises:
+        FileNotFoundError: a policy file is missing (named).
+    """
+    from tensordict.nn import TensorDictSequential
+
+    folder = Path(folder)
+    files = {name: folder / rel for name, rel in POLICY_FILES.items()}
+    for name, path in files.items():
+        if not path.is_file():
+            raise FileNotFoundError(f"policy folder {str(folder)!r} has no {name} file "
+                                    f"{str(path)!r}")
+    spec = PolicySpec.from_json(files["spec"].read_text())
+    wrapped = with_policy_features(spec, env) if env is not None else None
+    if env is not None:
+        action_spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") \
+            else env.action_spec
+    else:
+        from torchrl.data import Categorical
+
+        action_spec = Categorical(spec.n_actions)
+    actor, explorer = build_policy(spec, action_spec, device=device)
+    actor.load_state_dict(torch.load(files["model"], map_location=device, weights_only=False))
+    explorer.load_state_dict(torch.load(files["explorer"], map_location=device,
+                                        weights_only=False))
+    return TensorDictSequential(actor, explorer), wrapped, spec
