@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,21 @@ venv: $(VENV)/.installed
 TRAIN_ARGS ?= collector.total_frames=12000
 train: venv
 	$(PY) recipes/train.py $(TRAIN_ARGS)
+
+# make generalist: the policy that flies layouts it has never seen (recipes/config/generalist.yaml:
+# oracle teacher phase + DQN phase across random training-split layouts, selected on a validation
+# set of training-split layouts), then shipped as torchrl_causal.pretrained "generalist".
+GENERALIST_ARGS ?= seed=0
+generalist: venv
+	$(PY) recipes/train.py --config-name generalist output_dir=outputs/generalist threads=1 \
+	    progress=false $(GENERALIST_ARGS)
+	$(PY) recipes/ship_policy.py outputs/generalist generalist \
+	    --command "make generalist GENERALIST_ARGS='$(GENERALIST_ARGS)'"
+
+# make ship-thesis THESIS_RUN=<run folder of make train>: ship it as pretrained "thesis"
+THESIS_RUN ?= outputs/make_train
+ship-thesis: venv
+	$(PY) recipes/ship_policy.py $(THESIS_RUN) thesis --command "make train"
 
 test: venv
 	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 --doctest-modules torchrl_causal tests

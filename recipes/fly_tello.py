@@ -2,6 +2,7 @@
 
 ::
 
+    python recipes/fly_tello.py --episodes 10          # the shipped generalist, held-out layouts
     python recipes/fly_tello.py --run outputs/make_train --episodes 10
     python recipes/fly_tello.py --run outputs/make_train --episodes 10 --compare-sim 10
     python recipes/fly_tello.py --run outputs/make_train --host 192.168.10.1
@@ -53,7 +54,12 @@ CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--run", required=True, help="a finished run folder of recipes/train.py")
+    p.add_argument("--run", default=None,
+                   help="a finished run folder of recipes/train.py, or a shipped policy folder; "
+                        "default: the shipped generalist (torchrl_causal.pretrained)")
+    p.add_argument("--layout", default=None, choices=("thesis", "heldout", "train", "val"),
+                   help="emulator scene; default: thesis for a policy trained on the thesis "
+                        "scene, else held-out random layouts")
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--host", default=None,
                    help=f"a real drone's address (e.g. {REAL_HOST_DEFAULT}); default: the emulator")
@@ -238,6 +244,11 @@ def main(argv=None) -> dict:
 
     import train as train_recipe
 
+    if args.run is None:  # the shipped generalist
+        from torchrl_causal.pretrained import policy_dir
+
+        args.run = str(policy_dir("generalist"))
+        args.out = args.out or str(Path("outputs") / "tello" / "generalist")
     run = Path(args.run)
     cfg = OmegaConf.load(run / "config.yaml")
     real = args.host is not None
@@ -268,7 +279,9 @@ def main(argv=None) -> dict:
     else:
         from torchrl_causal.envs import TelloEmulator
 
-        layout_opts = train_recipe.ru.SCENES[cfg.env.layout]
+        scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+        summary["layout"] = scene
+        layout_opts = train_recipe.ru.SCENES[scene]
         noise = NOISE if args.noise else {}
         with TelloEmulator(env_options=dict(layout_opts, seed=cfg.seed, **noise),
                            video_size=args.video_hw, time_scale=args.time_scale,
@@ -294,7 +307,8 @@ def main(argv=None) -> dict:
         from torchrl_causal.training import evaluate
 
         noise = [f"env.options.{k}={v}" for k, v in NOISE.items()] if args.noise else []
-        policy, env, _ = train_recipe.load_policy(run, overrides=noise)
+        scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+        policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
         res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + int(cfg.seed) * 1009,
                        max_steps=args.max_steps)
         k = int(round(res["success_rate"] * args.compare_sim))

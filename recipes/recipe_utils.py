@@ -387,6 +387,9 @@ def _check_teacher(cfg: Mapping) -> None:
         val = _get(cfg, key)
         _require(isinstance(val, (int, float)) and not isinstance(val, bool) and val >= 0, key,
                  val, "a number >= 0")
+    weight = _get(cfg, "teacher.planner_weight", 1.2)
+    _require(isinstance(weight, (int, float)) and not isinstance(weight, bool) and weight >= 1,
+             "teacher.planner_weight", weight, "a number >= 1 (1: optimal A*)")
     beta = _get(cfg, "teacher.beta_decay")
     _require(isinstance(beta, (int, float)) and 0 <= beta <= 1, "teacher.beta_decay", beta,
              "a number in [0, 1]")

@@ -1,6 +1,6 @@
 """Ship a finished run's policy as package data: ``python recipes/ship_policy.py RUN_DIR NAME``.
 
-Copies ``model.pt`` and ``explorer.pt`` of a run folder of ``recipes/train.py``
+Copies ``config.yaml``, ``model.pt`` and ``explorer.pt`` of a run folder of ``recipes/train.py``
 into ``torchrl_causal/pretrained/policies/NAME/``, writes its ``policy.json``
 (the run's :class:`~torchrl_causal.pretrained.PolicySpec`, rebuilt from
 ``config.yaml`` when the run predates ``policy.json``) and ``provenance.json``
@@ -74,6 +74,8 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(run_dir / "model.pt", out / "model.pt")
     shutil.copyfile(run_dir / "explorer.pt", out / "explorer.pt")
+    # the run's config too: the folder stays a valid run folder (train.load_policy, fly_tello --run)
+    shutil.copyfile(run_dir / "config.yaml", out / "config.yaml")
     (out / "policy.json").write_text(spec.to_json())
     (out / "provenance.json").write_text(json.dumps(provenance, indent=2, default=str))
     return out

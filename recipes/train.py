@@ -244,11 +244,13 @@ def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
         rounds=t.rounds, episodes_per_round=t.episodes_per_round, beta_decay=t.beta_decay,
         updates_per_frame=t.updates_per_frame, batch_size=cfg.buffer.batch_size, lr=t.lr,
         margin=t.margin, td_weight=t.td_weight, max_expansions=t.max_expansions,
+        planner_weight=t.get("planner_weight", 1.2),
         seed=cfg.seed, progress=cfg.progress), device=cfg.device)
-    history = imitation.run()
-    rows = EpisodeCSV(out / "imitation.csv", list(history[0]))
-    for row in history:
-        rows.write(row)
+    rows = EpisodeCSV(out / "imitation.csv", [
+        "round", "beta", "frames", "labelled", "agreement", "success_rate", "crash_rate", "loss",
+        "collect_seconds", "train_seconds", "teacher_replans"])
+    rows.truncate(0)  # an interrupted teacher phase starts again from round 0
+    history = imitation.run(on_round=rows.write)  # imitation.csv grows round by round
     if hook is not None:  # the CBNs learn from the teacher phase's flights
         hook.inv(imitation.buffer[:])
         hook.relearn()

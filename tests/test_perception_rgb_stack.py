@@ -28,7 +28,7 @@ from torchrl_causal.perception.yolo import YoloGoalDetector  # the perception ex
 from torchrl_causal.transforms import EstimatedDepth, GoalFeatures, make_causal_transforms
 
 ROOT = Path(__file__).resolve().parents[1]
-POLICY = ROOT / "tests" / "data" / "thesis_policy"
+POLICY = ROOT / "torchrl_causal" / "pretrained" / "policies" / "thesis"
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +106,7 @@ def test_agreement_with_ground_truth_on_heldout_layouts(models):
 
 
 def test_policy_trained_on_ground_truth_flies_on_rgb_features():
-    """tests/data/thesis_policy (make train, seed 0: greedy success 1.00 on the thesis scene
+    """torchrl_causal/pretrained/policies/thesis (make train, seed 0: greedy success 1.00 on the thesis scene
     with ground-truth features) still reaches the goal when its nine features come from the
     RGB image alone."""
     sys.path.insert(0, str(ROOT / "recipes"))

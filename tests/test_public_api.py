@@ -362,6 +362,7 @@ SUBPACKAGES = (
     "torchrl_causal.modules",
     "torchrl_causal.data",
     "torchrl_causal.training",
+    "torchrl_causal.pretrained",
 )
 
 

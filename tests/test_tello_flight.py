@@ -1,6 +1,6 @@
 """A policy trained in simulation flies the Tello emulator on RGB-only perception.
 
-``recipes/fly_tello.py`` end to end: the policy of ``tests/data/thesis_policy`` (made by
+``recipes/fly_tello.py`` end to end: the policy of ``torchrl_causal/pretrained/policies/thesis`` (made by
 ``make train``, seed 0, on ground-truth features) flies unmodified djitellopy against the
 emulator over real UDP sockets, sees the decoded H.264 video only (shipped YOLOv8 detector +
 MonoDepth), and its success rate (judged by the simulator behind the emulator) lies in the
@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-POLICY = ROOT / "tests" / "data" / "thesis_policy"
+POLICY = ROOT / "torchrl_causal" / "pretrained" / "policies" / "thesis"
 sys.path.insert(0, str(ROOT / "recipes"))
 
 import fly_tello  # noqa: E402

@@ -9,6 +9,7 @@ Subpackages:
     * :mod:`torchrl_causal.modules` -- the thesis Q-network and the CBN gate.
     * :mod:`torchrl_causal.data` -- the replay-buffer hook that feeds causal learning.
     * :mod:`torchrl_causal.training` -- Algorithm 1 (``DQNLoop``), evaluation, run records.
+    * :mod:`torchrl_causal.pretrained` -- shipped trained policies (``load_policy``).
 """
 
 __version__ = "0.1.0"

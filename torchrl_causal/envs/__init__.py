@@ -16,6 +16,9 @@ registration) stays cheap and free of import cycles with torchrl.
 * :mod:`~torchrl_causal.envs.tello` -- :class:`TelloEnv`, the real DJI Tello (djitellopy) with safety.
 * :mod:`~torchrl_causal.envs.tello_emulator` -- :class:`TelloEmulator`, the Tello SDK over UDP
   with H.264 video, backed by :class:`DroneNavEnv` (software in the loop).
+* :mod:`~torchrl_causal.envs.oracle` -- :class:`ShortestPathPlanner` (A* over the env's own
+  moves and collision sweep) and :class:`OraclePolicy`: the shortest-path baseline, SPL's
+  reference and the imitation teacher (privileged: simulation only).
 * :mod:`~torchrl_causal.envs.gym_registration` -- ``torchrl_causal/DroneNav-v0``
   and ``torchrl_causal/GridNav-v0``.
 """
@@ -63,6 +66,9 @@ _LAZY = {
     "TelloVideoError": "tello",
     "ACTION_COMMANDS": "tello",
     "TelloEmulator": "tello_emulator",
+    "ShortestPathPlanner": "oracle",
+    "OraclePolicy": "oracle",
+    "PlanningError": "oracle",
     "TelloFaults": "tello_emulator",
 }
 

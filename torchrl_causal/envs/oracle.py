@@ -46,7 +46,18 @@ __all__ = ["ShortestPathPlanner", "OraclePolicy", "PlanningError", "base_drone_e
 
 
 class PlanningError(RuntimeError):
-    """No plan was found within the planner's search budget (or none exists)."""
+    """No plan was found within the planner's search budget (or none exists).
+
+    Example:
+        >>> from torchrl_causal.envs import DroneNavEnv
+        >>> env = DroneNavEnv(image_size=32, seed=0)
+        >>> _ = env.reset()
+        >>> try:
+        ...     ShortestPathPlanner(env, max_expansions=1).plan()
+        ... except PlanningError as err:
+        ...     print("max_expansions=1" in str(err))
+        True
+    """
 
 
 def base_drone_env(env):
@@ -81,6 +92,11 @@ class ShortestPathPlanner:
             :class:`PlanningError`.
         max_steps: longest plan accepted (default: the env's steps left in the
             episode).
+        resolution: states closer than this (m, per axis) with the same heading
+            class are one search state.
+        weight: heuristic weight; 1 (default) is A* and returns an optimal plan,
+            ``w > 1`` is weighted A*: far fewer expansions, a plan at most ``w``
+            times longer than optimal (the imitation teacher uses 1.5).
 
     The env's state (drone pose) is restored after every search; its noise
     options are ignored while planning (the plan is for noise-free moves).
@@ -100,7 +116,7 @@ class ShortestPathPlanner:
     """
 
     def __init__(self, env, *, max_expansions: int = 60_000, max_steps: int | None = None,
-                 resolution: float = 0.02):
+                 resolution: float = 0.02, weight: float = 1.0):
         base = base_drone_env(env)
         if base is None:
             raise ValueError(
@@ -121,6 +137,9 @@ class ShortestPathPlanner:
         if not isinstance(resolution, (int, float)) or not 0 < resolution <= 0.1:
             raise ValueError(f"resolution must be in (0, 0.1] m, got {resolution!r}")
         self.resolution = float(resolution)
+        if not isinstance(weight, (int, float)) or isinstance(weight, bool) or weight < 1:
+            raise ValueError(f"weight must be a number >= 1, got {weight!r}")
+        self.weight = float(weight)
         self.last_expansions = 0
         self.last_seconds = 0.0
 
@@ -195,7 +214,8 @@ class ShortestPathPlanner:
             return []
         nodes = [(start, -1, -1)]  # (pose, parent index, action)
         best_g = {key(start): 0}
-        heap = [(h(start), 0, 0)]  # (f, -g, node index): ties go to the deeper node
+        w = self.weight
+        heap = [(w * h(start), 0, 0)]  # (f, -g, node index): ties go to the deeper node
         expansions = 0
         while heap:
             f, neg_g, idx = heapq.heappop(heap)
@@ -231,7 +251,7 @@ class ShortestPathPlanner:
                     continue
                 best_g[k] = g + 1
                 nodes.append((nxt, idx, a))
-                heapq.heappush(heap, (g + 1 + h(nxt), -(g + 1), len(nodes) - 1))
+                heapq.heappush(heap, (g + 1 + w * h(nxt), -(g + 1), len(nodes) - 1))
         self.last_expansions = expansions
         raise PlanningError(f"no plan of at most {limit} steps exists from this state "
                             f"(layout {layout.name!r})")
@@ -249,6 +269,7 @@ class OraclePolicy(TensorDictModuleBase):
         env: the ``DroneNavEnv`` (or a ``TransformedEnv`` over one) it acts in.
         max_expansions: see :class:`ShortestPathPlanner`.
         fallback_action: taken when no plan exists (default 0, forward).
+        weight: the planner's heuristic weight (1: optimal plans).
 
     Example:
         >>> from torchrl_causal.envs import DroneNavEnv
@@ -261,9 +282,10 @@ class OraclePolicy(TensorDictModuleBase):
     in_keys: list = []
     out_keys = ["action"]
 
-    def __init__(self, env, *, max_expansions: int = 60_000, fallback_action: int = 0):
+    def __init__(self, env, *, max_expansions: int = 60_000, fallback_action: int = 0,
+                 weight: float = 1.0):
         super().__init__()
-        self.planner = ShortestPathPlanner(env, max_expansions=max_expansions)
+        self.planner = ShortestPathPlanner(env, max_expansions=max_expansions, weight=weight)
         self.fallback_action = int(fallback_action)
         self._plan: list[int] = []
         self._expect: tuple | None = None

@@ -63,6 +63,10 @@ def policy_dir(name: str) -> Path:
 
     Raises:
         ValueError: an unknown name (the message lists the available ones).
+
+    Example:
+        >>> (policy_dir("thesis") / "policy.json").is_file()
+        True
     """
     names = available()
     if name not in names:
@@ -71,7 +75,12 @@ def policy_dir(name: str) -> Path:
 
 
 def provenance(name: str) -> dict:
-    """How the shipped policy ``name`` was made (command, seed, frames, commit, figures)."""
+    """How the shipped policy ``name`` was made (command, seed, frames, commit, figures).
+
+    Example:
+        >>> provenance("thesis")["variant"]
+        'cbn_v2'
+    """
     path = policy_dir(name) / "provenance.json"
     return json.loads(path.read_text()) if path.is_file() else {}
 
@@ -94,6 +103,14 @@ def load_policy(name: str = "generalist", base_env=None, device: str = "cpu"):
 
     Raises:
         ValueError: an unknown ``name`` (the available names are listed).
+
+    Example:
+        >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
+        >>> policy, env = load_policy("thesis")
+        >>> with set_exploration_type(ExplorationType.DETERMINISTIC):
+        ...     td = env.rollout(200, policy, break_when_any_done=True)
+        >>> bool(td["next", "reached"][-1]), td.shape[0] <= 16
+        (True, True)
     """
     folder = policy_dir(name)
     if base_env is None:

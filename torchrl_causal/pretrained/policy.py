@@ -174,7 +174,15 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
 
 
 def with_policy_features(spec: PolicySpec, env, seed: int | None = None):
-    """``env`` wrapped in :func:`policy_transforms` (``env`` itself when there are none)."""
+    """``env`` wrapped in :func:`policy_transforms` (``env`` itself when there are none).
+
+    Example:
+        >>> from torchrl_causal.envs import DroneNavEnv
+        >>> spec = PolicySpec(inputs=["causal_features", "action_history"], history=2)
+        >>> env = with_policy_features(spec, DroneNavEnv(image_size=32, seed=0))
+        >>> env.reset()["policy_features"].shape
+        torch.Size([25])
+    """
     from torchrl.envs import TransformedEnv
 
     transforms = policy_transforms(spec, env, seed=seed)
@@ -234,6 +242,13 @@ def load_policy_dir(folder, *, env=None, device="cpu"):
 
     Raises:
         FileNotFoundError: a policy file is missing (named).
+
+    Example:
+        >>> from torchrl_causal.envs import DroneNavEnv
+        >>> from torchrl_causal.pretrained import policy_dir
+        >>> policy, env, spec = load_policy_dir(policy_dir("thesis"), env=DroneNavEnv(seed=0))
+        >>> spec.actor_keys, type(policy[1]).__name__
+        (['pixels', 'causal_state'], 'CBNGate')
     """
     from tensordict.nn import TensorDictSequential
 

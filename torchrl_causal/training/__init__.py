@@ -6,6 +6,9 @@
   (:mod:`torchrl_causal.training.loop`).
 * :func:`evaluate` / :func:`seed_transforms` -- greedy evaluation
   (:mod:`torchrl_causal.training.evaluation`).
+* :class:`OracleImitation` / :class:`ImitationConfig` -- a teacher phase:
+  DAgger from the shortest-path oracle into the Q-network (DQfD margin loss)
+  (:mod:`torchrl_causal.training.imitation`).
 * :class:`EpisodeCSV`, :func:`atomic_save`, :func:`rng_state`,
   :func:`set_rng_state` -- resumable run records (:mod:`torchrl_causal.training.records`).
 
@@ -15,7 +18,14 @@ Example:
     250
 """
 
-from torchrl_causal.training.evaluation import OUTCOME_KEYS, env_max_steps, evaluate, seed_transforms
+from torchrl_causal.training.evaluation import (
+    OUTCOME_KEYS,
+    env_max_steps,
+    evaluate,
+    seed_transforms,
+    spl_of,
+)
+from torchrl_causal.training.imitation import ImitationConfig, OracleImitation, margin_loss
 from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 
@@ -24,7 +34,11 @@ __all__ = [
     "LoopConfig",
     "RUN_FILES",
     "evaluate",
+    "spl_of",
     "seed_transforms",
+    "OracleImitation",
+    "ImitationConfig",
+    "margin_loss",
     "env_max_steps",
     "OUTCOME_KEYS",
     "EpisodeCSV",

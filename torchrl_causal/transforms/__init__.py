@@ -10,6 +10,8 @@
 * :class:`Discretize` -- ``causal_features`` (float32 ``[..., n_vars]``, 9 for the default schema) and
   ``causal_state`` (int64 ``[..., n_vars]``, ``MultiCategorical``) for any ``VariableSchema``.
 * :func:`make_causal_transforms` -- the whole stack for a ``DroneNavEnv``.
+* :class:`ActionHistory` -- the last actions as an observation (the policy's
+  short-term memory; not one of the nine variables).
 
 The altitude needs no transform: ``Discretize`` reads the env's ``altitude``
 key directly (rename another env's key with TorchRL's ``RenameTransform`` or
@@ -20,9 +22,11 @@ from torchrl_causal.transforms.depth import SECTION_NAMES, DepthSections, sectio
 from torchrl_causal.transforms.discretize import Discretize, Thresholds
 from torchrl_causal.transforms.estimated_depth import EstimatedDepth
 from torchrl_causal.transforms.goal import GoalFeatures
+from torchrl_causal.transforms.history import ActionHistory
 from torchrl_causal.transforms.stack import make_causal_transforms
 
 __all__ = [
+    "ActionHistory",
     "DepthSections",
     "Discretize",
     "EstimatedDepth",

@@ -1,0 +1,91 @@
+"""torchrl_causal.pretrained from the outside: the shipped policies, PolicySpec, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_causal.envs import DroneNavEnv
+from torchrl_causal.pretrained import (
+    PolicySpec,
+    available,
+    load_policy,
+    load_policy_dir,
+    policy_dir,
+    provenance,
+)
+from torchrl_causal.training import evaluate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_available_lists_the_shipped_policies_and_unknown_names_are_named():
+    names = available()
+    assert "thesis" in names
+    with pytest.raises(ValueError, match=r"name='nope'.*available are \[.*'thesis'"):
+        load_policy("nope")
+    prov = provenance("thesis")
+    assert prov["seed"] == 0 and prov["variant"] == "cbn_v2" and prov["commit"]
+
+
+def test_thesis_policy_flies_the_thesis_scene_in_one_call():
+    policy, env = load_policy("thesis", base_env=DroneNavEnv(seed=0))
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.rollout(200, policy, break_when_any_done=True)
+    assert bool(td["next", "reached"][-1]) and td.shape[0] <= 16
+    # the default base env of the thesis policy is the thesis scene
+    _, default_env = load_policy("thesis")
+    assert default_env.base_env.layout_option == "thesis"
+
+
+def test_recipe_loader_and_pretrained_loader_build_the_same_policy():
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import train
+
+    folder = policy_dir("thesis")
+    a, env_a, _ = train.load_policy(folder)
+    b, env_b, spec = load_policy_dir(folder, env=DroneNavEnv(seed=0))
+    assert spec.inputs == ["causal_state"] and spec.explorer == "cbn_gate"
+    td = env_b.reset()
+    qa = a[0](td.clone())["action_value"]
+    qb = b[0](td.clone())["action_value"]
+    torch.testing.assert_close(qa, qb)
+    assert a[1].tables is not None and b[1].tables is not None
+
+
+def test_policy_spec_round_trip_and_bad_input(tmp_path):
+    spec = PolicySpec(inputs=["causal_features", "action_history"], history=3,
+                      explorer="egreedy", gate_mode=None)
+    assert PolicySpec.from_json(spec.to_json()) == spec
+    assert spec.n_features == 9 + 24 and spec.actor_keys == ["pixels", "policy_features"]
+    with pytest.raises(ValueError, match="unknown keys"):
+        PolicySpec(inputs=["speed"])
+    with pytest.raises(ValueError, match="history"):
+        PolicySpec(inputs=["action_history"], history=0)
+    with pytest.raises(ValueError, match="explorer"):
+        PolicySpec(explorer="softmax")
+    with pytest.raises(ValueError, match="unknown fields"):
+        PolicySpec.from_json(json.dumps({"image_size": 84, "colour": "red"}))
+    folder = tmp_path / "pol"
+    shutil.copytree(policy_dir("thesis"), folder)
+    (folder / "model.pt").unlink()
+    with pytest.raises(FileNotFoundError, match="model"):
+        load_policy_dir(folder)
+
+
+@pytest.mark.skipif("generalist" not in available(), reason="make generalist has not shipped it")
+def test_shipped_generalist_flies_held_out_layouts():
+    """The shipped generalist on held-out random layouts it never saw (its figures over 100
+    layouts are in provenance.json; here 10 episodes, seeded, against random flight)."""
+    policy, env = load_policy("generalist")
+    assert env.base_env.split == "heldout"
+    res = evaluate(policy, env, episodes=10, seed=2024, spl=False)
+    spin = evaluate(lambda td: td.set("action", env.action_spec.rand()), env, episodes=10,
+                    seed=2024, spl=False)
+    assert res["success_rate"] >= spin["success_rate"] + 0.4, (res, spin)
