@@ -387,6 +387,16 @@ def _check_teacher(cfg: Mapping) -> None:
         val = _get(cfg, key)
         _require(isinstance(val, (int, float)) and not isinstance(val, bool) and val >= 0, key,
                  val, "a number >= 0")
+    acts = _get(cfg, "teacher.actions")
+    if acts is not None:
+        from torchrl_causal.schema import ACTION_NAMES
+
+        bad = [a for a in acts if a not in ACTION_NAMES]
+        _require(not bad and len(acts) > 0, "teacher.actions", list(acts),
+                 f"null or a non-empty list of actions among {ACTION_NAMES}")
+    clearance = _get(cfg, "teacher.clearance", 0.0)
+    _require(isinstance(clearance, (int, float)) and not isinstance(clearance, bool)
+             and 0 <= clearance <= 0.5, "teacher.clearance", clearance, "metres in [0, 0.5]")
     weight = _get(cfg, "teacher.planner_weight", 1.2)
     _require(isinstance(weight, (int, float)) and not isinstance(weight, bool) and weight >= 1,
              "teacher.planner_weight", weight, "a number >= 1 (1: optimal A*)")

@@ -244,7 +244,8 @@ def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
         rounds=t.rounds, episodes_per_round=t.episodes_per_round, beta_decay=t.beta_decay,
         updates_per_frame=t.updates_per_frame, batch_size=cfg.buffer.batch_size, lr=t.lr,
         margin=t.margin, td_weight=t.td_weight, max_expansions=t.max_expansions,
-        planner_weight=t.get("planner_weight", 1.2),
+        planner_weight=t.get("planner_weight", 1.2), clearance=t.get("clearance", 0.0),
+        teacher_actions=list(t.actions) if t.get("actions") else None,
         seed=cfg.seed, progress=cfg.progress), device=cfg.device)
     rows = EpisodeCSV(out / "imitation.csv", [
         "round", "beta", "frames", "labelled", "agreement", "success_rate", "crash_rate", "loss",

@@ -33,6 +33,7 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import math
 import time
@@ -94,6 +95,16 @@ class ShortestPathPlanner:
             episode).
         resolution: states closer than this (m, per axis) with the same heading
             class are one search state.
+        clearance: keep this much more distance (m) from everything: the
+            search runs with the drone's collision hull inflated by it (the env's
+            own collision check on a larger box), and falls back to the real hull
+            when no such plan exists. 0 (default): shortest plans, which graze
+            obstacles; the imitation teacher uses a margin so that a student's
+            small deviations do not crash.
+        actions: the actions the plan may use (indices or
+            :data:`~torchrl_causal.schema.ACTION_NAMES`; default: all eight). The
+            imitation teacher can leave out the sideways and backward moves, which
+            a forward-looking camera cannot see into.
         weight: heuristic weight; 1 (default) is A* and returns an optimal plan,
             ``w > 1`` is weighted A*: far fewer expansions, a plan at most ``w``
             times longer than optimal (the imitation teacher uses 1.5).
@@ -116,7 +127,8 @@ class ShortestPathPlanner:
     """
 
     def __init__(self, env, *, max_expansions: int = 60_000, max_steps: int | None = None,
-                 resolution: float = 0.02, weight: float = 1.0):
+                 resolution: float = 0.02, weight: float = 1.0, clearance: float = 0.0,
+                 actions=None):
         base = base_drone_env(env)
         if base is None:
             raise ValueError(
@@ -140,6 +152,27 @@ class ShortestPathPlanner:
         if not isinstance(weight, (int, float)) or isinstance(weight, bool) or weight < 1:
             raise ValueError(f"weight must be a number >= 1, got {weight!r}")
         self.weight = float(weight)
+        if not isinstance(clearance, (int, float)) or isinstance(clearance, bool) \
+                or not 0 <= clearance <= 0.5:
+            raise ValueError(f"clearance must be in [0, 0.5] m, got {clearance!r}")
+        self.clearance = float(clearance)
+        from ..schema import ACTION_NAMES
+
+        if actions is None:
+            actions = range(len(ACTION_NAMES))
+        chosen = []
+        for a in actions:
+            if isinstance(a, str) and a in ACTION_NAMES:
+                chosen.append(ACTION_NAMES.index(a))
+            elif isinstance(a, (int, np.integer)) and not isinstance(a, bool) \
+                    and 0 <= a < len(ACTION_NAMES):
+                chosen.append(int(a))
+            else:
+                raise ValueError(f"actions: {a!r} is not an action index or one of "
+                                 f"{ACTION_NAMES}")
+        if not chosen:
+            raise ValueError("actions must name at least one action")
+        self.actions = tuple(sorted(set(chosen)))
         self.last_expansions = 0
         self.last_seconds = 0.0
 
@@ -166,6 +199,12 @@ class ShortestPathPlanner:
         t0 = time.perf_counter()
         try:
             start = tuple(ex.pose()) if pose is None else tuple(float(v) for v in pose)
+            if self.clearance > 0:
+                try:
+                    with self._inflated_hull(self.clearance):
+                        return self._search(start)
+                except PlanningError:
+                    pass  # no plan keeps the margin: plan with the real hull
             return self._search(start)
         finally:
             ex.position_noise_std, ex.yaw_noise_std = noise
@@ -175,6 +214,22 @@ class ShortestPathPlanner:
 
             mujoco.mj_kinematics(env.model, data)
             self.last_seconds = time.perf_counter() - t0
+
+    @contextlib.contextmanager
+    def _inflated_hull(self, margin: float):
+        """The drone's colliding geoms grown by ``margin`` (m) while inside the block."""
+        model = self.env.model
+        geoms = [g for g in self.env.ids.drone_geoms if model.geom_contype[g]
+                 or model.geom_conaffinity[g]]
+        size = model.geom_size[geoms].copy()
+        rbound = model.geom_rbound[geoms].copy()
+        try:
+            model.geom_size[geoms] = size + margin
+            model.geom_rbound[geoms] = rbound + margin * math.sqrt(3.0)
+            yield
+        finally:
+            model.geom_size[geoms] = size
+            model.geom_rbound[geoms] = rbound
 
     def _search(self, start) -> list[int]:
         env = self.env
@@ -197,9 +252,12 @@ class ShortestPathPlanner:
             dxy = math.hypot(p[0] - gx, p[1] - gy)
             return max(0, math.ceil((abs(p[2] - gz) + dxy - slack) / step - 1e-9))
 
+        # with all four horizontal moves, headings 90 deg apart have the same moves:
+        # one search state
+        period = 90 if {0, 1, 2, 3} <= set(self.actions) else 360
+
         def key(p):
-            # headings 90 deg apart have the same four horizontal moves: one class
-            yaw = round(math.degrees(p[3])) % 90
+            yaw = round(math.degrees(p[3])) % period
             return (round(p[0] / res), round(p[1] / res), round(p[2] / res), yaw)
 
         ex.set_pose(*start)
@@ -231,7 +289,8 @@ class ShortestPathPlanner:
                 raise PlanningError(
                     f"no plan within max_expansions={self.max_expansions} states (layout "
                     f"{layout.name!r}); raise max_expansions")
-            for a, delta in enumerate(deltas):
+            for a in self.actions:
+                delta = deltas[a]
                 ex.set_pose(*pose)
                 out = ex.execute(delta, rng, goal, r)
                 if out.crashed:
@@ -269,7 +328,7 @@ class OraclePolicy(TensorDictModuleBase):
         env: the ``DroneNavEnv`` (or a ``TransformedEnv`` over one) it acts in.
         max_expansions: see :class:`ShortestPathPlanner`.
         fallback_action: taken when no plan exists (default 0, forward).
-        weight: the planner's heuristic weight (1: optimal plans).
+        weight, clearance, actions: see :class:`ShortestPathPlanner`.
 
     Example:
         >>> from torchrl_causal.envs import DroneNavEnv
@@ -283,9 +342,10 @@ class OraclePolicy(TensorDictModuleBase):
     out_keys = ["action"]
 
     def __init__(self, env, *, max_expansions: int = 60_000, fallback_action: int = 0,
-                 weight: float = 1.0):
+                 weight: float = 1.0, clearance: float = 0.0, actions=None):
         super().__init__()
-        self.planner = ShortestPathPlanner(env, max_expansions=max_expansions, weight=weight)
+        self.planner = ShortestPathPlanner(env, max_expansions=max_expansions, weight=weight,
+                                           clearance=clearance, actions=actions)
         self.fallback_action = int(fallback_action)
         self._plan: list[int] = []
         self._expect: tuple | None = None

@@ -80,6 +80,12 @@ class ImitationConfig:
         planner_weight: the teacher's heuristic weight (weighted A*): 1.2 plans
             3 % longer than optimal on held-out layouts but 8x faster (worst
             case 1.0 s instead of 11 s, measured from 30 off-start states).
+        teacher_actions: the actions the teacher may use (names or indices;
+            None: all eight). Leaving out backward / left / right makes every
+            horizontal move go where the camera looks, so the teacher's choices
+            can be inferred from what the student sees.
+        clearance: the teacher's safety margin (m, see
+            :class:`~torchrl_causal.envs.oracle.ShortestPathPlanner`).
         seed: seeds the env, the mixture draws and torch.
         progress: a tqdm bar over the rounds.
 
@@ -101,6 +107,8 @@ class ImitationConfig:
     max_grad_norm: float = 10.0
     max_expansions: int = 20_000
     planner_weight: float = 1.2
+    teacher_actions: tuple | None = None
+    clearance: float = 0.0
     seed: int = 0
     progress: bool = True
 
@@ -169,7 +177,9 @@ class OracleImitation:
         self.actor = actor
         self.device = torch.device(device)
         self.teacher = OraclePolicy(env, max_expansions=self.config.max_expansions,
-                                    weight=self.config.planner_weight)
+                                    weight=self.config.planner_weight,
+                                    clearance=self.config.clearance,
+                                    actions=self.config.teacher_actions)
         self.buffer = replay_buffer if replay_buffer is not None else TensorDictReplayBuffer(
             storage=LazyTensorStorage(50_000), batch_size=self.config.batch_size)
         if loss is None:

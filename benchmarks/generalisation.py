@@ -1,0 +1,199 @@
+"""Generalisation figures: greedy success, SPL and crashes on held-out layouts (and the thesis scene).
+
+::
+
+    python benchmarks/generalisation.py --runs 'outputs/gen/seed*' --episodes 100
+    python benchmarks/generalisation.py --runs 'outputs/gen/seed*' --pretrained thesis generalist
+
+Prints one JSON object per line:
+
+* ``figure="oracle"``: the shortest-path oracle (:class:`torchrl_causal.envs.OraclePolicy`)
+  on the same episodes -- success 1.0 and SPL 1.0 by construction, its mean plan length;
+* ``figure="run"``: one per run folder (or ``--pretrained`` name) and setting
+  (``heldout``, ``thesis``): success rate with its 95 % Wilson interval, SPL, crash
+  rate, geofence exits, mean steps, the run's frames (DQN and teacher phases) and
+  training wall time;
+* ``figure="variant"``: per variant and setting over its runs (seeds): mean success,
+  its 95 % t-interval over seeds, how many seeds reach ``--target`` (0.9), mean SPL.
+
+Every policy flies the same episodes (``--seed``): layouts of the held-out split of
+layout world 0, never trained on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+SETTINGS = ("heldout", "thesis")
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of ``k`` successes in ``n``."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    d = 1 + z * z / n
+    c = p + z * z / (2 * n)
+    r = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return ((c - r) / d, (c + r) / d)
+
+
+def t_interval(values: list[float]) -> tuple[float, float]:
+    """95 % t-interval of the mean of ``values`` (NaN for fewer than 2)."""
+    from scipy import stats
+
+    n = len(values)
+    if n < 2:
+        return (float("nan"), float("nan"))
+    m = sum(values) / n
+    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (n - 1))
+    h = stats.t.ppf(0.975, n - 1) * sd / math.sqrt(n)
+    return (m - h, m + h)
+
+
+def scene_env(setting: str, seed: int):
+    from torchrl_causal.envs import DroneNavEnv
+
+    if setting == "thesis":
+        return DroneNavEnv("thesis", seed=seed)
+    return DroneNavEnv("random", split="heldout", layout_seed=0, seed=seed)
+
+
+def run_rows(name: str, folder: Path, settings, episodes: int, seed: int) -> list[dict]:
+    import train
+
+    from torchrl_causal.training import evaluate
+
+    summary_path = folder / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    prov_path = folder / "provenance.json"
+    prov = json.loads(prov_path.read_text()) if prov_path.is_file() else {}
+    rows = []
+    for setting in settings:
+        from omegaconf import OmegaConf
+
+        cfg = OmegaConf.load(folder / "config.yaml")
+        env = train.with_features(cfg, train.ru.VARIANTS[cfg.variant], scene_env(setting, seed))
+        policy, env, cfg = train.load_policy(folder, env=env)
+        t0 = time.perf_counter()
+        n = episodes if setting == "heldout" else min(episodes, 20)
+        res = evaluate(policy, env, n, seed=seed)
+        k = int(round(res["success_rate"] * n))
+        lo, hi = wilson(k, n)
+        rows.append({
+            "bench": "generalisation", "figure": "run", "name": name, "run": str(folder),
+            "variant": str(cfg.variant), "seed": int(cfg.seed),
+            "training_scene": str(cfg.env.layout), "setting": setting, "episodes": n,
+            "success_rate": res["success_rate"], "ci95": [round(lo, 4), round(hi, 4)],
+            "spl": res.get("spl"), "crash_rate": res["collisions"] / n,
+            "out_of_bounds": res["out_of_bounds"], "mean_length": res["mean_length"],
+            "oracle_steps": res.get("oracle_steps"),
+            "frames": summary.get("frames", prov.get("frames")),
+            "teacher_frames": (summary.get("teacher") or prov.get("teacher") or {}).get("frames", 0),
+            "train_seconds": (summary.get("loop_seconds") or 0)
+            + ((summary.get("teacher") or {}).get("seconds") or 0),
+            "eval_seconds": round(time.perf_counter() - t0, 1),
+        })
+        env.close()
+    return rows
+
+
+def oracle_rows(settings, episodes: int, seed: int) -> list[dict]:
+    from torchrl_causal.envs import OraclePolicy
+    from torchrl_causal.training import evaluate
+
+    rows = []
+    for setting in settings:
+        env = scene_env(setting, seed)
+        n = episodes if setting == "heldout" else min(episodes, 20)
+        t0 = time.perf_counter()
+        res = evaluate(OraclePolicy(env), env, n, seed=seed)
+        rows.append({"bench": "generalisation", "figure": "oracle", "name": "oracle",
+                     "setting": setting, "episodes": n, "success_rate": res["success_rate"],
+                     "spl": res["spl"], "crash_rate": res["collisions"] / n,
+                     "mean_length": res["mean_length"], "oracle_steps": res["oracle_steps"],
+                     "eval_seconds": round(time.perf_counter() - t0, 1)})
+        env.close()
+    return rows
+
+
+def variant_rows(rows: list[dict], target: float) -> list[dict]:
+    out = []
+    keys = sorted({(r["variant"], r["training_scene"], r["setting"]) for r in rows
+                   if r["figure"] == "run"})
+    for variant, trained, setting in keys:
+        group = [r for r in rows if r["figure"] == "run" and r["variant"] == variant
+                 and r["training_scene"] == trained and r["setting"] == setting]
+        succ = [r["success_rate"] for r in group]
+        spl = [r["spl"] for r in group if r["spl"] is not None]
+        lo, hi = t_interval(succ)
+        out.append({"bench": "generalisation", "figure": "variant", "variant": variant,
+                    "training_scene": trained, "setting": setting, "n_seeds": len(group),
+                    "seeds": sorted(r["seed"] for r in group),
+                    "success_mean": sum(succ) / len(succ),
+                    "success_ci95": None if math.isnan(lo) else [round(lo, 4), round(hi, 4)],
+                    "seeds_at_target": sum(s >= target for s in succ), "target": target,
+                    "spl_mean": sum(spl) / len(spl) if spl else None,
+                    "crash_rate_mean": sum(r["crash_rate"] for r in group) / len(group)})
+    return out
+
+
+def main(argv=None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", nargs="*", default=[], help="run folders (globs allowed)")
+    p.add_argument("--pretrained", nargs="*", default=[],
+                   help="shipped policy names (torchrl_causal.pretrained)")
+    p.add_argument("--episodes", type=int, default=100, help="held-out episodes per policy")
+    p.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=SETTINGS)
+    p.add_argument("--seed", type=int, default=2024, help="seeds the evaluation episodes")
+    p.add_argument("--target", type=float, default=0.9)
+    p.add_argument("--no-oracle", action="store_true")
+    p.add_argument("--out", default=None, help="also append the JSON lines to this file")
+    a = p.parse_args(argv)
+    if a.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {a.episodes}")
+    folders = [Path(f) for pat in a.runs for f in sorted(glob.glob(pat))]
+    missing = [str(f) for f in folders if not (f / "model.pt").is_file()]
+    if missing:
+        p.error(f"--runs: no model.pt (not a finished run) in {missing}")
+    if a.runs and not folders:
+        p.error(f"--runs {a.runs} matched no folder")
+    import torch
+
+    from torchrl_causal.pretrained import policy_dir
+
+    torch.set_num_threads(1)
+    named = [(f.name, f) for f in folders]
+    named += [(f"pretrained:{n}", policy_dir(n)) for n in a.pretrained]
+    rows: list[dict] = []
+
+    def emit(batch):
+        for r in batch:
+            line = json.dumps(r)
+            print(line, flush=True)
+            if a.out:
+                with open(a.out, "a") as f:
+                    f.write(line + "\n")
+        rows.extend(batch)
+
+    if not a.no_oracle:
+        emit(oracle_rows(a.settings, a.episodes, a.seed))
+    for name, folder in named:
+        emit(run_rows(name, folder, a.settings, a.episodes, a.seed))
+    emit(variant_rows(rows, a.target))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
