@@ -248,7 +248,8 @@ def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
         teacher_actions=list(t.actions) if t.get("actions") else None,
         seed=cfg.seed, progress=cfg.progress), device=cfg.device)
     rows = EpisodeCSV(out / "imitation.csv", [
-        "round", "beta", "frames", "labelled", "agreement", "success_rate", "crash_rate", "loss",
+        "round", "beta", "frames", "labelled", "agreement", "success_rate", "crash_rate",
+        "crash_near_goal_rate", "loss",
         "collect_seconds", "train_seconds", "teacher_replans"])
     rows.truncate(0)  # an interrupted teacher phase starts again from round 0
     history = imitation.run(on_round=rows.write)  # imitation.csv grows round by round
@@ -366,6 +367,7 @@ def train(cfg: DictConfig) -> dict:
             "seconds": float(sum(r["collect_seconds"] + r["train_seconds"] for r in teacher)),
             "last_round": teacher[-1]}
     summary.update(write_outputs(cfg, variant, paths, hook))
+    summary["flight_maps"] = [str(p) for p in draw_flight_maps(loop, paths["plots"])]
     spec = policy_spec(cfg, variant, provenance={
         "run": str(out), "variant": cfg.variant, "seed": cfg.seed,
         "frames": summary["frames"],
@@ -401,6 +403,21 @@ def write_outputs(cfg, variant, paths, hook) -> dict:
             rows = table_5_1(expert, first, last)
             md, _ = write_table_5_1(rows, paths["tables"] / "table_5_1")
             out["table_5_1"] = str(md)
+    return out
+
+
+def draw_flight_maps(loop, folder: Path, max_maps: int = 12) -> list[Path]:
+    """``plots/flight_map_<scene>.png``: the final greedy episodes of each evaluation
+    scene from above (up to ``max_maps`` per scene), coloured by outcome, the oracle's
+    plans dashed."""
+    from torchrl_causal.training.flightmap import plot_flight_maps
+
+    out = []
+    for scene, episodes in getattr(loop, "final_episodes", {}).items():
+        eps = [e for e in episodes if e.get("path")][:max_maps]
+        if eps:
+            out.append(plot_flight_maps(eps, folder / f"flight_map_{scene}.png",
+                                        suptitle=f"final greedy episodes: {scene}"))
     return out
 
 

@@ -143,3 +143,24 @@ def test_evaluate_reports_spl():
     res = evaluate(spin, env, episodes=1, seed=0, max_steps=10)
     assert res["spl"] == 0.0 and res["success_rate"] == 0.0
     assert spl_of(True, 24, 12) == 0.5 and math.isnan(spl_of(True, 3, float("nan")))
+
+
+def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path):
+    from torchrl_causal.training.flightmap import outcome_of, plot_flight_map, plot_flight_maps
+
+    env = DroneNavEnv("random", split="heldout", layout_seed=3, image_size=32, seed=1)
+
+    def forward(td):
+        return td.set("action", torch.tensor(0))
+
+    res = evaluate(forward, env, episodes=2, seed=0, per_episode=True, max_steps=30)
+    eps = res["episodes"]
+    assert all(len(e["path"]) == e["steps"] + 1 for e in eps)
+    assert all(e["oracle_plan"] and len(e["oracle_plan"]) == e["oracle_steps"] for e in eps)
+    ax = plot_flight_map(eps[:1], path=tmp_path / "one.png")
+    kinds = {line.get_label() for line in ax.get_lines()}
+    assert outcome_of(eps[0]) in kinds and "oracle" in kinds
+    out = plot_flight_maps(eps, tmp_path / "grid.png")
+    assert (tmp_path / "one.png").stat().st_size > 10_000 and out.stat().st_size > 10_000
+    with pytest.raises(ValueError, match="layout"):
+        plot_flight_map([{"success": True}])

@@ -9,6 +9,8 @@
 * :class:`OracleImitation` / :class:`ImitationConfig` -- a teacher phase:
   DAgger from the shortest-path oracle into the Q-network (DQfD margin loss)
   (:mod:`torchrl_causal.training.imitation`).
+* :func:`plot_flight_map` / :func:`plot_flight_maps` -- evaluated episodes drawn
+  from above (:mod:`torchrl_causal.training.flightmap`).
 * :class:`EpisodeCSV`, :func:`atomic_save`, :func:`rng_state`,
   :func:`set_rng_state` -- resumable run records (:mod:`torchrl_causal.training.records`).
 
@@ -25,6 +27,7 @@ from torchrl_causal.training.evaluation import (
     seed_transforms,
     spl_of,
 )
+from torchrl_causal.training.flightmap import plot_flight_map, plot_flight_maps
 from torchrl_causal.training.imitation import ImitationConfig, OracleImitation, margin_loss
 from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
@@ -37,6 +40,8 @@ __all__ = [
     "spl_of",
     "seed_transforms",
     "OracleImitation",
+    "plot_flight_map",
+    "plot_flight_maps",
     "ImitationConfig",
     "margin_loss",
     "env_max_steps",

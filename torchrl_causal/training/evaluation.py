@@ -108,7 +108,11 @@ def evaluate(
             :class:`~torchrl_causal.envs.DroneNavEnv`.
         per_episode: also return ``episodes``: one dict per episode
             (``success``, ``crash``, ``out_of_bounds``, ``steps``, ``reward``,
-            ``oracle_steps``, ``spl``).
+            ``oracle_steps``, ``spl``; over a ``DroneNavEnv`` also ``layout``
+            and ``path``, the drone's ``(x, y, z, yaw_deg)`` before every step
+            and at the end, and ``oracle_plan``, the oracle's actions from the
+            start -- what :func:`~torchrl_causal.training.flightmap.plot_flight_map`
+            draws).
 
     Returns:
         ``success_rate``, ``mean_reward``, ``collisions``, ``out_of_bounds``,
@@ -143,13 +147,29 @@ def evaluate(
     env.set_seed(int(seed))
     seed_transforms(env, seed)
     rewards, successes, crashes, exits, lengths, oracle = [], [], [], [], [], []
+    from ..envs.oracle import base_drone_env
+
+    base = base_drone_env(env) if per_episode else None
+    paths, plans, layouts = [], [], []
+    acting = policy
+    if base is not None:
+        def acting(td):  # records the pose the action is taken from
+            paths[-1].append(base.drone_pose())
+            return policy(td)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             start = env.reset()
             if planner is not None:
-                oracle.append(_oracle_steps(planner))
-            td = env.rollout(steps, policy, break_when_any_done=True, auto_reset=False,
+                plan = _oracle_plan(planner)
+                oracle.append(float(len(plan)) if plan is not None else float("nan"))
+                plans.append(plan)
+            if base is not None:
+                paths.append([])
+                layouts.append(base.layout)
+            td = env.rollout(steps, acting, break_when_any_done=True, auto_reset=False,
                              tensordict=start)
+            if base is not None:
+                paths[-1].append(base.drone_pose())
             nxt = td["next"]
             rewards.append(float(nxt["reward"].sum()))
             lengths.append(td.numel())
@@ -178,6 +198,11 @@ def evaluate(
              "spl": spls[i] if spls else float("nan")}
             for i, (ok, c, o, p, r) in enumerate(zip(successes, crashes, exits, lengths, rewards))
         ]
+        for i, ep in enumerate(out["episodes"]):
+            if base is not None:
+                ep["layout"], ep["path"] = layouts[i], paths[i]
+            if plans:
+                ep["oracle_plan"] = plans[i]
     return out
 
 
@@ -204,10 +229,10 @@ def _spl_planner(env):
     return ShortestPathPlanner(base)
 
 
-def _oracle_steps(planner) -> float:
+def _oracle_plan(planner) -> list[int] | None:
     from ..envs.oracle import PlanningError
 
     try:
-        return float(len(planner.plan()))
+        return planner.plan()
     except PlanningError:
-        return float("nan")
+        return None

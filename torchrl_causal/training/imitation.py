@@ -201,6 +201,7 @@ class OracleImitation:
         steps, labelled, agree, rows = 0, 0, 0, []
         max_steps = getattr(self.teacher.planner.env, "max_steps", 200)
         reached = crashed = False
+        near_goal = False
         for _ in range(max_steps):
             expert = self.teacher.expert_action()
             student = int(self.actor(td.clone().to(self.device))["action"])
@@ -219,11 +220,13 @@ class OracleImitation:
             if bool(nxt["done"]):
                 reached = bool(nxt.get("reached", torch.zeros(1)).any())
                 crashed = bool(nxt.get("crashed", torch.zeros(1)).any())
+                base = self.teacher.planner.env
+                near_goal = base._distance_to_goal_point(base._executor.pose()) < 0.6
                 break
             td = env.step_mdp(td)
         self.buffer.extend(torch.stack(rows))
         return {"steps": steps, "labelled": labelled, "agree": agree, "reached": reached,
-                "crashed": crashed}
+                "crashed": crashed, "crashed_near_goal": crashed and near_goal}
 
     # ------------------------------------------------------------ training
     def update(self, n: int) -> float:
@@ -286,6 +289,8 @@ class OracleImitation:
                 "agreement": sum(e["agree"] for e in eps) / max(1, labelled),
                 "success_rate": float(np.mean([e["reached"] for e in eps])),
                 "crash_rate": float(np.mean([e["crashed"] for e in eps])),
+                # crashes within 0.6 m of the goal point (into the board while arriving)
+                "crash_near_goal_rate": float(np.mean([e["crashed_near_goal"] for e in eps])),
                 "loss": loss, "collect_seconds": t1 - t0,
                 "train_seconds": time.perf_counter() - t1,
                 "teacher_replans": self.teacher.replans,

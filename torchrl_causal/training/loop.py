@@ -843,14 +843,21 @@ class DQNLoop:
                          "explorer": copy.deepcopy(self.explorer.state_dict())}
 
     def final_evaluation(self) -> dict:
-        """``final_eval_episodes`` greedy episodes on every evaluation env: ``{name: result}``."""
+        """``final_eval_episodes`` greedy episodes on every evaluation env: ``{name: result}``.
+
+        The episodes' own records (outcomes, steps, SPL and, over a ``DroneNavEnv``,
+        the flown paths) are kept in ``self.final_episodes[name]``."""
         cfg, out = self.config, {}
         if cfg.final_eval_episodes == 0:
             return out
+        self.final_episodes = {}
         for i, name in enumerate(self.eval_envs):
             out[name] = evaluate(self.policy, self._eval_env(name), cfg.final_eval_episodes,
                                  seed=10_000_019 + cfg.seed * 1009 + i,
-                                 outcome_keys=self.outcome_keys, max_steps=cfg.eval_max_steps)
+                                 outcome_keys=self.outcome_keys, max_steps=cfg.eval_max_steps,
+                                 per_episode=True)
+            # per-episode records (paths, oracle plans) stay on the loop: flight maps
+            self.final_episodes[name] = out[name].pop("episodes")
         return out
 
     # ------------------------------------------------------------------ run
