@@ -185,6 +185,45 @@ def aggregate(run_dirs) -> dict:
     return _nan_to_none(out)
 
 
+CONTROL = "dqn_features"
+
+
+def paired_vs_control(results: list[dict], control: str = CONTROL) -> list[dict]:
+    """Per variant with a CBN: the seed-paired difference of final greedy success
+    against ``control`` (same features, same seeds, no CBN), mean and 95 % t-interval,
+    and a verdict: ``helps`` / ``hurts`` (the interval excludes 0) or ``cannot be told
+    apart``.
+
+    Example:
+        >>> rows = [{"variant": "dqn_features", "seeds": [0, 1], "final_success": [0.5, 0.7]},
+        ...         {"variant": "cbn_v2", "seeds": [0, 1], "final_success": [0.9, 0.8]}]
+        >>> r = paired_vs_control(rows)[0]
+        >>> r["variant"], r["n_pairs"], round(r["difference_mean"], 2), r["verdict"]
+        ('cbn_v2', 2, 0.25, 'cannot be told apart')
+    """
+    base = next((r for r in results if r["variant"] == control), None)
+    if base is None:
+        return []
+    ref = dict(zip(base["seeds"], base["final_success"]))
+    out = []
+    for r in results:
+        if r["variant"] == control or not r["variant"].startswith("cbn"):
+            continue
+        diffs = [s - ref[seed] for seed, s in zip(r["seeds"], r["final_success"]) if seed in ref]
+        if not diffs:
+            continue
+        mean = sum(diffs) / len(diffs)
+        half = ci95(diffs) if len(diffs) > 1 else float("nan")
+        lo, hi = mean - half, mean + half
+        verdict = ("helps" if lo > 0 else "hurts" if hi < 0 else "cannot be told apart") \
+            if len(diffs) > 1 else "cannot be told apart"
+        out.append(_nan_to_none({
+            "benchmark": "learning", "figure": "paired_vs_control", "variant": r["variant"],
+            "control": control, "n_pairs": len(diffs), "differences": diffs,
+            "difference_mean": mean, "difference_ci95": [lo, hi], "verdict": verdict}))
+    return out
+
+
 def find_runs(out: Path, variant: str, seeds=None) -> list[Path]:
     """Run folders ``<out>/<variant>/seed_<s>`` (all found, or those of ``seeds``)."""
     folder = Path(out) / variant
@@ -323,6 +362,9 @@ def main(argv=None) -> list[dict]:
         res = aggregate(dirs)
         results.append(res)
         print(json.dumps(res), flush=True)
+    for row in paired_vs_control(results):
+        print(json.dumps(row), flush=True)
+        results.append(row)
     if results:
         args.out.mkdir(parents=True, exist_ok=True)
         with open(args.out / "learning.jsonl", "w") as f:

@@ -367,12 +367,18 @@ def _check_teacher(cfg: Mapping) -> None:
     _require(isinstance(history, int) and not isinstance(history, bool) and history >= 0,
              "features.history", history, "an integer >= 0 (0: no action history)")
     inputs = list(_get(cfg, "features.inputs", None) or ["causal_state"])
-    allowed = ("causal_state", "causal_features", "action_history")
+    allowed = ("causal_state", "causal_features", "action_history", "feature_history")
     for key in inputs:
         _require(key in allowed, "features.inputs", inputs, f"keys among {allowed}")
     _require(("action_history" in inputs) == (history > 0), "features.inputs", inputs,
              f"action_history listed exactly when features.history > 0 "
              f"(features.history={history})")
+    frames = _get(cfg, "features.frames", 0)
+    _require(isinstance(frames, int) and not isinstance(frames, bool) and frames >= 0
+             and frames != 1, "features.frames", frames, "0 (none) or an integer >= 2")
+    _require(("feature_history" in inputs) == (frames > 0), "features.inputs", inputs,
+             f"feature_history listed exactly when features.frames > 0 "
+             f"(features.frames={frames})")
     if not rounds:
         return
     for key in ("teacher.episodes_per_round", "teacher.max_expansions"):

@@ -238,3 +238,37 @@ def summary_markdown(rows: Sequence[Mapping], columns: Sequence[str], title: str
             cells.append(f"{v:.3f}" if isinstance(v, float) else str(v))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def plot_teacher_rounds(csvs: Mapping[str, str | Path], path: str | Path) -> Path:
+    """The teacher phase's rounds (``imitation.csv``) of several runs side by side:
+    the student's share of successful and crashed episodes on the round's new
+    training layouts, and its agreement with the teacher, against the frames labelled.
+
+    Args:
+        csvs: ``{label: imitation.csv path}``.
+        path: the PNG to write.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for label, csv_path in csvs.items():
+        df = pd.read_csv(csv_path)
+        frames = df["frames"].cumsum()
+        for ax, col in zip(axes, ("success_rate", "crash_rate", "agreement")):
+            ax.plot(frames, df[col], marker="o", ms=3, label=label)
+    for ax, title in zip(axes, ("success (round's episodes)", "crash (round's episodes)",
+                                "agreement with the teacher")):
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("frames labelled (cumulative)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path

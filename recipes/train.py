@@ -91,11 +91,13 @@ def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = 
     return PolicySpec(
         image_size=cfg.env.image_size, n_actions=len(ACTION_NAMES), inputs=inputs,
         history=int(features.get("history", 0)) if variant.features else 0,
+        frames=int(features.get("frames", 0)) if variant.features else 0,
         features=OmegaConf.to_container(cfg.features.options, resolve=True),
         explorer="egreedy" if variant.causal_mode is None else "cbn_gate",
         gate_mode=ru.gate_mode(cfg, variant), prob_causal_model=cfg.gate.prob_causal_model,
         threshold=cfg.gate.threshold, eps_init=eps["eps_init"], eps_end=eps["eps_end"],
         annealing_frames=eps["annealing_num_steps"], provenance=provenance or {},
+        image=bool(features.get("image", True)) if variant.features else True,
     )
 
 

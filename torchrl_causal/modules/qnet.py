@@ -21,7 +21,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-__all__ = ["ThesisQNet"]
+__all__ = ["ThesisQNet", "FeatureQNet"]
 
 
 def _conv_out(size: int, kernel: int, stride: int) -> int:
@@ -169,3 +169,58 @@ class ThesisQNet(nn.Module):
             raise ValueError("features given to a ThesisQNet built with n_features=0")
         q = self.head(self.dense(z))
         return q.reshape(*batch, self.n_actions)
+
+
+class FeatureQNet(nn.Module):
+    """A Q-network on state values alone (no image): two dense ReLU layers and a head.
+
+    An ablation of :class:`ThesisQNet` for the generalisation study: the same
+    features (e.g. the nine continuous values and the action history), no
+    convolutions. Wrap it in :class:`torchrl.modules.QValueActor` with the
+    features key as the only in-key.
+
+    Args:
+        n_actions: number of discrete actions.
+        n_features: width of the feature vector.
+        hidden: width of the two dense layers.
+        feature_scale: optional per-feature divisors (see :class:`ThesisQNet`).
+        device: device of the parameters.
+
+    Example:
+        >>> import torch
+        >>> net = FeatureQNet(8, 41)
+        >>> net(torch.zeros(3, 41)).shape
+        torch.Size([3, 8])
+    """
+
+    def __init__(self, n_actions: int = 8, n_features: int = 9, *, hidden: int = 256,
+                 feature_scale: Sequence[float] | torch.Tensor | None = None,
+                 device: torch.device | str | None = None):
+        super().__init__()
+        if not isinstance(n_actions, int) or n_actions < 1:
+            raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
+        if not isinstance(n_features, int) or n_features < 1:
+            raise ValueError(f"n_features must be a positive int, got {n_features!r}")
+        self.n_actions, self.n_features = n_actions, n_features
+        self.net = nn.Sequential(
+            nn.Linear(n_features, hidden, device=device), nn.ReLU(),
+            nn.Linear(hidden, hidden, device=device), nn.ReLU(),
+            nn.Linear(hidden, n_actions, device=device),
+        )
+        if feature_scale is not None:
+            feature_scale = torch.as_tensor(feature_scale, dtype=torch.float32, device=device)
+            if feature_scale.shape != (n_features,) or (feature_scale == 0).any():
+                raise ValueError(f"feature_scale must be {n_features} non-zero values")
+            self.register_buffer("feature_scale", feature_scale)
+        else:
+            self.feature_scale = None
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """Q-values ``[..., n_actions]``."""
+        f = features.float()
+        if f.shape[-1] != self.n_features:
+            raise ValueError(f"expected {self.n_features} features, got shape "
+                             f"{tuple(features.shape)}")
+        if self.feature_scale is not None:
+            f = f / self.feature_scale
+        return self.net(f)

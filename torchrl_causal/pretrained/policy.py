@@ -27,10 +27,12 @@ __all__ = ["PolicySpec", "FEATURE_SCALES", "policy_transforms", "build_policy",
 #: Divisors that bring each input key's values to order 1 inside the Q-network
 #: (``causal_features``: five depths and the goal distance in metres / 5, the
 #: goal angle in degrees / 30; the 0/1 flags and the altitude as they are).
+_CF_SCALE = (5.0, 5.0, 5.0, 5.0, 5.0, 1.0, 5.0, 30.0, 1.0)
 FEATURE_SCALES: dict[str, tuple[float, ...] | None] = {
     "causal_state": None,
-    "causal_features": (5.0, 5.0, 5.0, 5.0, 5.0, 1.0, 5.0, 30.0, 1.0),
+    "causal_features": _CF_SCALE,
     "action_history": None,
+    "feature_history": _CF_SCALE,  # per frame of the stack
 }
 #: Files of a policy folder.
 POLICY_FILES = {"spec": "policy.json", "model": "model.pt", "explorer": "explorer.pt"}
@@ -49,6 +51,10 @@ class PolicySpec:
             ``action_history``.
         history: length of :class:`~torchrl_causal.transforms.ActionHistory`
             (needed when ``"action_history"`` is an input).
+        frames: frames of ``causal_features`` stacked by TorchRL's ``CatFrames``
+            into ``feature_history`` (needed when it is an input): a memory of
+            what was seen, which, unlike the action history, does not hand the
+            student its own last action to copy.
         features: keyword arguments of
             :func:`~torchrl_causal.transforms.make_causal_transforms`.
         explorer: ``"egreedy"`` (TorchRL ``EGreedyModule``) or ``"cbn_gate"``
@@ -56,6 +62,9 @@ class PolicySpec:
         gate_mode: the gate's algorithm (``"p"``, ``"pn"``, ``"v2"``).
         prob_causal_model, threshold: the gate's parameters (thesis sec. 4.5).
         eps_init, eps_end, annealing_frames: exploration schedule.
+        image: the Q-network reads the image (:class:`~torchrl_causal.modules.ThesisQNet`);
+            False: the features alone (:class:`~torchrl_causal.modules.FeatureQNet`,
+            an ablation).
         provenance: free-form record (command, seed, frames, commit, figures).
 
     Example:
@@ -68,6 +77,7 @@ class PolicySpec:
     n_actions: int = 8
     inputs: list = field(default_factory=lambda: ["causal_state"])
     history: int = 0
+    frames: int = 0
     features: dict = field(default_factory=dict)
     explorer: str = "cbn_gate"
     gate_mode: str | None = "v2"
@@ -76,6 +86,7 @@ class PolicySpec:
     eps_init: float = 1.0
     eps_end: float = 0.05
     annealing_frames: int = 8000
+    image: bool = True
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -88,9 +99,15 @@ class PolicySpec:
                                                     and self.history >= 1):
             raise ValueError(f"PolicySpec.history must be an int >= 1 when 'action_history' is "
                              f"an input, got {self.history!r}")
+        if "feature_history" in self.inputs and not (isinstance(self.frames, int)
+                                                     and self.frames >= 2):
+            raise ValueError(f"PolicySpec.frames must be an int >= 2 when 'feature_history' "
+                             f"is an input, got {self.frames!r}")
         if self.explorer not in _EXPLORERS:
             raise ValueError(f"PolicySpec.explorer must be one of {_EXPLORERS}, got "
                              f"{self.explorer!r}")
+        if not self.image and not self.inputs:
+            raise ValueError("PolicySpec.image=False needs inputs (the features to read)")
         if self.explorer == "cbn_gate" and "causal_state" not in self.features_written():
             raise ValueError("PolicySpec.explorer='cbn_gate' needs the feature stack "
                              "(causal_state): give inputs beside the image")
@@ -102,33 +119,36 @@ class PolicySpec:
         keys = ["causal_features", "causal_state"]
         if self.history:
             keys.append("action_history")
+        if self.frames:
+            keys.append("feature_history")
         return keys
 
     @property
     def n_features(self) -> int:
         """Width of the vector the Q-network reads beside the image."""
-        width = {"causal_state": 9, "causal_features": 9,
+        width = {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
                  "action_history": self.history * self.n_actions}
         return sum(width[k] for k in self.inputs)
 
     @property
     def actor_keys(self) -> list[str]:
         """The actor's ``in_keys``."""
+        image = ["pixels"] if self.image else []
         if not self.inputs:
             return ["pixels"]
         if len(self.inputs) == 1:
-            return ["pixels", self.inputs[0]]
-        return ["pixels", "policy_features"]
+            return image + [self.inputs[0]]
+        return image + ["policy_features"]
 
     def feature_scale(self) -> list[float] | None:
         """Per-value divisors of the Q-network's features (None: all ones)."""
         scale, any_set = [], False
         for k in self.inputs:
             s = FEATURE_SCALES[k]
-            n = {"causal_state": 9, "causal_features": 9,
+            n = {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
                  "action_history": self.history * self.n_actions}[k]
             any_set |= s is not None
-            scale += list(s) if s is not None else [1.0] * n
+            scale += list(s) * (n // len(s)) if s is not None else [1.0] * n
         return scale if any_set else None
 
     def to_json(self) -> str:
@@ -155,7 +175,7 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
         >>> [type(t).__name__ for t in ts]
         ['Compose', 'ActionHistory', 'CatTensors']
     """
-    from torchrl.envs import CatTensors
+    from torchrl.envs import CatFrames, CatTensors
 
     from ..transforms import make_causal_transforms
     from ..transforms.history import ActionHistory
@@ -168,6 +188,9 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
     out = [make_causal_transforms(env, **options)]
     if spec.history:
         out.append(ActionHistory(spec.n_actions, length=spec.history))
+    if spec.frames:
+        out.append(CatFrames(N=spec.frames, dim=-1, in_keys=["causal_features"],
+                             out_keys=["feature_history"]))
     if len(spec.inputs) > 1:
         out.append(CatTensors(list(spec.inputs), "policy_features", del_keys=False))
     return out
@@ -211,11 +234,15 @@ def build_policy(spec: PolicySpec, action_spec, *, device="cpu", seed: int | Non
     """
     from torchrl.modules import EGreedyModule, QValueActor
 
-    from ..modules import CBNGate, ThesisQNet
+    from ..modules import CBNGate, FeatureQNet, ThesisQNet
 
-    net = ThesisQNet(spec.n_actions, n_features=spec.n_features, device=device,
-                     image_size=(spec.image_size, spec.image_size),
-                     feature_scale=spec.feature_scale())
+    if spec.image:
+        net = ThesisQNet(spec.n_actions, n_features=spec.n_features, device=device,
+                         image_size=(spec.image_size, spec.image_size),
+                         feature_scale=spec.feature_scale())
+    else:
+        net = FeatureQNet(spec.n_actions, spec.n_features, device=device,
+                          feature_scale=spec.feature_scale())
     actor = QValueActor(net, in_keys=spec.actor_keys, spec=action_spec)
     eps = dict(eps_init=spec.eps_init, eps_end=spec.eps_end,
                annealing_num_steps=spec.annealing_frames)
