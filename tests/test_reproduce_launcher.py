@@ -128,9 +128,10 @@ def test_dry_run_prints_multiruns_and_formula(tmp_path, capsys):
     assert reproduce.main(["--mode", "reduced", "--jobs", "2", "--dry-run",
                            "--root", str(tmp_path)]) == {}
     printed = capsys.readouterr().out
-    assert "Estimated wall time for 16 runs x 2000 frames on 2 parallel jobs: " \
-           "ceil(16 / 2) x (2000 / fps" in printed
-    assert "10 runs via --launcher=joblib" in printed and "6 runs via --launcher=joblib" in printed
+    # 7 variants (the five of the thesis and the two no-CBN controls) x 2 seeds + k sweep 3 x 2
+    assert "Estimated wall time for 20 runs x 2000 frames on 2 parallel jobs: " \
+           "ceil(20 / 2) x (2000 / fps" in printed
+    assert "14 runs via --launcher=joblib" in printed and "6 runs via --launcher=joblib" in printed
     assert "hydra.launcher.n_jobs=2" in printed and "checkpoint.resume=auto" in printed
     assert not list(tmp_path.rglob("summary.json"))
 

@@ -96,13 +96,13 @@ class ImitationConfig:
     """
 
     rounds: int = 12
-    episodes_per_round: int = 60
+    episodes_per_round: int = 40
     beta_decay: float = 0.6
-    updates_per_frame: float = 0.25
-    batch_size: int = 64
+    updates_per_frame: float = 1.0
+    batch_size: int = 32
     lr: float = 3e-4
     margin: float = 0.8
-    td_weight: float = 1.0
+    td_weight: float = 0.0
     target_update_interval: int = 250
     max_grad_norm: float = 10.0
     max_expansions: int = 20_000
