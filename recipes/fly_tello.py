@@ -94,6 +94,11 @@ def parse_args(argv=None):
         assert len(a.video_hw) == 2
     except (ValueError, AssertionError):
         p.error(f"--video-size must look like 240x320, got {a.video_size!r}")
+    if a.run is None:  # the shipped generalist
+        from torchrl_causal.pretrained import policy_dir
+
+        a.run = str(policy_dir("generalist"))
+        a.out = a.out or str(Path("outputs") / "tello" / "generalist")
     if not (Path(a.run) / "config.yaml").is_file():
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
     if a.perception not in ("rgb", "sim") and ":" not in a.perception:
@@ -244,11 +249,6 @@ def main(argv=None) -> dict:
 
     import train as train_recipe
 
-    if args.run is None:  # the shipped generalist
-        from torchrl_causal.pretrained import policy_dir
-
-        args.run = str(policy_dir("generalist"))
-        args.out = args.out or str(Path("outputs") / "tello" / "generalist")
     run = Path(args.run)
     cfg = OmegaConf.load(run / "config.yaml")
     real = args.host is not None

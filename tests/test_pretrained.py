@@ -95,3 +95,12 @@ def test_shipped_generalist_flies_held_out_layouts_better_than_random_flight():
     assert res["mean_reward"] >= rand["mean_reward"] + 5.0, (res, rand)
     prov = provenance("generalist")
     assert prov["training_scene"] == "train" and prov["teacher"]["frames"] > 0
+
+
+def test_fly_tello_flies_the_shipped_generalist_when_no_run_is_given():
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import fly_tello
+
+    args = fly_tello.parse_args(["--episodes", "1"])
+    assert Path(args.run) == policy_dir("generalist")
+    assert Path(args.out) == Path("outputs") / "tello" / "generalist"  # not inside the package
