@@ -53,7 +53,7 @@ docs: venv
 
 # the speed benchmarks (minutes); the learning benchmarks train many runs:
 # make bench-learning (drone, hours) and make bench-gridnav (grid world, ~20 min)
-LEARNING_BENCHES := benchmarks/learning.py benchmarks/gridnav.py
+LEARNING_BENCHES := benchmarks/learning.py benchmarks/gridnav.py benchmarks/generalisation.py
 bench: venv
 	for b in $(filter-out $(LEARNING_BENCHES),$(wildcard benchmarks/*.py)); do $(PY) $$b || exit 1; done
 
