@@ -255,9 +255,11 @@ def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
         "collect_seconds", "train_seconds", "teacher_replans"])
     rows.truncate(0)  # an interrupted teacher phase starts again from round 0
     history = imitation.run(on_round=rows.write)  # imitation.csv grows round by round
-    if hook is not None:  # the CBNs learn from the teacher phase's flights
+    if hook is not None:  # the CBNs learn from the teacher phase's flights (one relearn)
+        before = hook.learner.n_relearns
         hook.inv(imitation.buffer[:])
-        hook.relearn()
+        if hook.learner.n_relearns == before:  # the write crossed no multiple of k
+            hook.relearn()
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"actor": actor.state_dict(), "history": history,
                 "hook": hook.state_dict() if hook is not None else None}, ckpt)
