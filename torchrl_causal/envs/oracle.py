@@ -190,30 +190,38 @@ class ShortestPathPlanner:
         env = self.env
         if env._executor is None or env.layout is None:
             raise RuntimeError("ShortestPathPlanner.plan: reset the env first")
-        ex = env._executor
-        data = env.data
-        qpos0 = data.qpos.copy()
-        qvel0 = data.qvel.copy()
-        noise = (ex.position_noise_std, ex.yaw_noise_std)
-        ex.position_noise_std, ex.yaw_noise_std = 0.0, 0.0
         t0 = time.perf_counter()
         try:
-            start = tuple(ex.pose()) if pose is None else tuple(float(v) for v in pose)
-            if self.clearance > 0:
-                try:
-                    with self._inflated_hull(self.clearance):
-                        return self._search(start)
-                except PlanningError:
-                    pass  # no plan keeps the margin: plan with the real hull
-            return self._search(start)
+            with self.scratch():
+                ex = env._executor
+                start = tuple(ex.pose()) if pose is None else tuple(float(v) for v in pose)
+                if self.clearance > 0:
+                    try:
+                        with self._inflated_hull(self.clearance):
+                            return self._search(start)
+                    except PlanningError:
+                        pass  # no plan keeps the margin: plan with the real hull
+                return self._search(start)
+        finally:
+            self.last_seconds = time.perf_counter() - t0
+
+    @contextlib.contextmanager
+    def scratch(self):
+        """Noise-free moves inside the block; the drone's state is restored after it."""
+        import mujoco
+
+        env = self.env
+        ex, data = env._executor, env.data
+        qpos0, qvel0 = data.qpos.copy(), data.qvel.copy()
+        noise = (ex.position_noise_std, ex.yaw_noise_std)
+        ex.position_noise_std, ex.yaw_noise_std = 0.0, 0.0
+        try:
+            yield
         finally:
             ex.position_noise_std, ex.yaw_noise_std = noise
             data.qpos[:] = qpos0
             data.qvel[:] = qvel0
-            import mujoco
-
             mujoco.mj_kinematics(env.model, data)
-            self.last_seconds = time.perf_counter() - t0
 
     @contextlib.contextmanager
     def _inflated_hull(self, margin: float):
@@ -381,21 +389,10 @@ class OraclePolicy(TensorDictModuleBase):
             return None
         action = self._plan.pop(0)
         # where the action will put the drone (noise-free), to detect deviations
-        ex = env._executor
-        data = env.data
-        qpos0 = data.qpos.copy()
-        noise = (ex.position_noise_std, ex.yaw_noise_std)
-        ex.position_noise_std, ex.yaw_noise_std = 0.0, 0.0
-        try:
-            ex.execute(env._deltas[action], np.random.default_rng(0), env._goal_point,
-                       env.reach_radius)
-            self._expect = ex.pose()
-        finally:
-            ex.position_noise_std, ex.yaw_noise_std = noise
-            data.qpos[:] = qpos0
-            import mujoco
-
-            mujoco.mj_kinematics(env.model, data)
+        with self.planner.scratch():
+            env._executor.execute(env._deltas[action], np.random.default_rng(0),
+                                  env._goal_point, env.reach_radius)
+            self._expect = env._executor.pose()
         return action
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
