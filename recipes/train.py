@@ -98,6 +98,8 @@ def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = 
         threshold=cfg.gate.threshold, eps_init=eps["eps_init"], eps_end=eps["eps_end"],
         annealing_frames=eps["annealing_num_steps"], provenance=provenance or {},
         image=bool(features.get("image", True)) if variant.features else True,
+        ego_map=OmegaConf.to_container(features.get("ego_map", {}), resolve=True)
+        if variant.features else {},
     )
 
 

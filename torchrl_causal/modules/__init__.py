@@ -2,12 +2,13 @@
 
 * :class:`ThesisQNet` -- thesis Fig. 5.1 (image) and Fig. 5.2 (image + nine values).
 * :class:`FeatureQNet` -- the same features without the image (an ablation).
+* :class:`MapQNet` -- an egocentric map (:class:`~torchrl_causal.transforms.EgoMap`) and features.
 * :class:`CBNGate` -- Algorithm 3 (``"p"``, ``"pn"``) and Algorithm 4 (``"v2"``),
   a drop-in replacement of :class:`torchrl.modules.EGreedyModule` placed after
   :class:`torchrl.modules.QValueActor`.
 """
 
 from torchrl_causal.modules.gate import GATE_VARIANTS, CBNGate
-from torchrl_causal.modules.qnet import FeatureQNet, ThesisQNet
+from torchrl_causal.modules.qnet import FeatureQNet, MapQNet, ThesisQNet
 
-__all__ = ["CBNGate", "FeatureQNet", "GATE_VARIANTS", "ThesisQNet"]
+__all__ = ["CBNGate", "FeatureQNet", "GATE_VARIANTS", "MapQNet", "ThesisQNet"]

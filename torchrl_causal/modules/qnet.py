@@ -21,7 +21,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-__all__ = ["ThesisQNet", "FeatureQNet"]
+__all__ = ["ThesisQNet", "FeatureQNet", "MapQNet"]
 
 
 def _conv_out(size: int, kernel: int, stride: int) -> int:
@@ -224,3 +224,87 @@ class FeatureQNet(nn.Module):
         if self.feature_scale is not None:
             f = f / self.feature_scale
         return self.net(f)
+
+
+class MapQNet(nn.Module):
+    """A Q-network on an egocentric map and a feature vector (no camera image).
+
+    Reads :class:`~torchrl_causal.transforms.EgoMap`'s ``ego_map`` (uint8
+    ``[..., C, S, S]``, scaled to [0, 1]) through three convolutions
+    (32@3x3/1, 64@4x4/2, 64@3x3/2, ReLU), concatenates the features (e.g. the
+    nine continuous values, ``goal_memory`` and the action history, scaled by
+    ``feature_scale``) and maps them through two dense ReLU layers to one
+    Q-value per action.
+
+    Args:
+        n_actions: number of discrete actions.
+        n_features: width of the feature vector (0: the map alone).
+        map_channels: channels of the map.
+        map_size: side of the map (cells, >= 8).
+        hidden: width of the dense layers.
+        feature_scale: optional per-feature divisors (see :class:`ThesisQNet`).
+        device: device of the parameters.
+
+    Example:
+        >>> import torch
+        >>> net = MapQNet(8, n_features=15)
+        >>> net(torch.zeros(2, 3, 32, 32, dtype=torch.uint8), torch.zeros(2, 15)).shape
+        torch.Size([2, 8])
+    """
+
+    def __init__(self, n_actions: int = 8, n_features: int = 0, *, map_channels: int = 3,
+                 map_size: int = 32, hidden: int = 256,
+                 feature_scale: Sequence[float] | torch.Tensor | None = None,
+                 device: torch.device | str | None = None):
+        super().__init__()
+        if not isinstance(n_actions, int) or n_actions < 1:
+            raise ValueError(f"n_actions must be a positive int, got {n_actions!r}")
+        if not isinstance(n_features, int) or n_features < 0:
+            raise ValueError(f"n_features must be a non-negative int, got {n_features!r}")
+        if not isinstance(map_size, int) or map_size < 8:
+            raise ValueError(f"map_size must be an int >= 8, got {map_size!r}")
+        self.n_actions, self.n_features = n_actions, n_features
+        self.map_shape = (int(map_channels), int(map_size), int(map_size))
+        self.conv = nn.Sequential(
+            nn.Conv2d(map_channels, 32, 3, stride=1, padding=1, device=device), nn.ReLU(),
+            nn.Conv2d(32, 64, 4, stride=2, device=device), nn.ReLU(),
+            nn.Conv2d(64, 64, 3, stride=2, device=device), nn.ReLU(),
+            nn.Flatten(),
+        )
+        side = _conv_out(_conv_out(map_size, 4, 2), 3, 2)
+        self.dense = nn.Sequential(
+            nn.Linear(64 * side * side + n_features, hidden, device=device), nn.ReLU(),
+            nn.Linear(hidden, hidden, device=device), nn.ReLU(),
+            nn.Linear(hidden, n_actions, device=device),
+        )
+        if feature_scale is not None:
+            feature_scale = torch.as_tensor(feature_scale, dtype=torch.float32, device=device)
+            if feature_scale.shape != (n_features,) or (feature_scale == 0).any():
+                raise ValueError(f"feature_scale must be {n_features} non-zero values")
+            self.register_buffer("feature_scale", feature_scale)
+        else:
+            self.feature_scale = None
+
+    def forward(self, ego_map: torch.Tensor, features: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """Q-values ``[..., n_actions]``."""
+        if tuple(ego_map.shape[-3:]) != self.map_shape:
+            raise ValueError(f"expected a map of shape [..., {', '.join(map(str, self.map_shape))}]"
+                             f", got {tuple(ego_map.shape)}")
+        x = ego_map.float() / 255.0 if ego_map.dtype == torch.uint8 else ego_map.float()
+        batch = x.shape[:-3]
+        z = self.conv(x.reshape(-1, *self.map_shape))
+        if self.n_features:
+            if features is None:
+                raise ValueError(f"this MapQNet was built with n_features={self.n_features}: "
+                                 "pass the features")
+            f = features.float()
+            if f.shape[-1] != self.n_features:
+                raise ValueError(f"expected {self.n_features} features, got shape "
+                                 f"{tuple(features.shape)}")
+            if self.feature_scale is not None:
+                f = f / self.feature_scale
+            z = torch.cat([z, f.reshape(-1, self.n_features)], -1)
+        elif features is not None:
+            raise ValueError("features given to a MapQNet built with n_features=0")
+        return self.dense(z).reshape(*batch, self.n_actions)

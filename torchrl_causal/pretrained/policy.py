@@ -33,7 +33,10 @@ FEATURE_SCALES: dict[str, tuple[float, ...] | None] = {
     "causal_features": _CF_SCALE,
     "action_history": None,
     "feature_history": _CF_SCALE,  # per frame of the stack
+    "goal_memory": None,  # EgoMap writes it at order 1
 }
+#: Inputs that are maps, read by the convolutions of :class:`~torchrl_causal.modules.MapQNet`.
+MAP_INPUTS = ("ego_map",)
 #: Files of a policy folder.
 POLICY_FILES = {"spec": "policy.json", "model": "model.pt", "explorer": "explorer.pt"}
 _EXPLORERS = ("egreedy", "cbn_gate")
@@ -48,7 +51,8 @@ class PolicySpec:
         n_actions: size of the action space.
         inputs: keys read beside ``pixels`` (empty: the image-only Fig. 5.1
             network); among ``causal_state``, ``causal_features``,
-            ``action_history``.
+            ``action_history``, ``feature_history``, ``goal_memory`` and the map
+            ``ego_map`` (see ``ego_map``).
         history: length of :class:`~torchrl_causal.transforms.ActionHistory`
             (needed when ``"action_history"`` is an input).
         frames: frames of ``causal_features`` stacked by TorchRL's ``CatFrames``
@@ -65,6 +69,10 @@ class PolicySpec:
         image: the Q-network reads the image (:class:`~torchrl_causal.modules.ThesisQNet`);
             False: the features alone (:class:`~torchrl_causal.modules.FeatureQNet`,
             an ablation).
+        ego_map: keyword arguments of :class:`~torchrl_causal.transforms.EgoMap`,
+            appended to the stack when ``"ego_map"`` or ``"goal_memory"`` is an
+            input; ``"ego_map"`` as an input makes the network a
+            :class:`~torchrl_causal.modules.MapQNet` (with ``image=False``).
         provenance: free-form record (command, seed, frames, commit, figures).
 
     Example:
@@ -87,14 +95,19 @@ class PolicySpec:
     eps_end: float = 0.05
     annealing_frames: int = 8000
     image: bool = True
+    ego_map: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.inputs = list(self.inputs)
-        unknown = [k for k in self.inputs if k not in FEATURE_SCALES]
+        unknown = [k for k in self.inputs if k not in FEATURE_SCALES and k not in MAP_INPUTS]
         if unknown:
             raise ValueError(f"PolicySpec.inputs has unknown keys {unknown}: expected keys among "
-                             f"{sorted(FEATURE_SCALES)}")
+                             f"{sorted(FEATURE_SCALES) + list(MAP_INPUTS)}")
+        if "ego_map" in self.inputs and self.image:
+            raise ValueError("PolicySpec: 'ego_map' takes the image's place in the network "
+                             "(MapQNet); set image=False")
+        self.ego_map = dict(self.ego_map)
         if "action_history" in self.inputs and not (isinstance(self.history, int)
                                                     and self.history >= 1):
             raise ValueError(f"PolicySpec.history must be an int >= 1 when 'action_history' is "
@@ -121,14 +134,28 @@ class PolicySpec:
             keys.append("action_history")
         if self.frames:
             keys.append("feature_history")
+        if self.uses_ego_map:
+            keys += ["ego_map", "goal_memory"]
         return keys
+
+    @property
+    def uses_ego_map(self) -> bool:
+        """Whether an :class:`~torchrl_causal.transforms.EgoMap` is in the feature stack."""
+        return "ego_map" in self.inputs or "goal_memory" in self.inputs
+
+    @property
+    def vector_inputs(self) -> list[str]:
+        """The inputs concatenated into the feature vector (all but the maps)."""
+        return [k for k in self.inputs if k not in MAP_INPUTS]
+
+    def _width(self, key: str) -> int:
+        return {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
+                "action_history": self.history * self.n_actions, "goal_memory": 6}[key]
 
     @property
     def n_features(self) -> int:
         """Width of the vector the Q-network reads beside the image."""
-        width = {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
-                 "action_history": self.history * self.n_actions}
-        return sum(width[k] for k in self.inputs)
+        return sum(self._width(k) for k in self.vector_inputs)
 
     @property
     def actor_keys(self) -> list[str]:
@@ -136,17 +163,21 @@ class PolicySpec:
         image = ["pixels"] if self.image else []
         if not self.inputs:
             return ["pixels"]
-        if len(self.inputs) == 1:
-            return image + [self.inputs[0]]
+        if "ego_map" in self.inputs:
+            image = ["ego_map"]
+        vec = self.vector_inputs
+        if not vec:
+            return image
+        if len(vec) == 1:
+            return image + [vec[0]]
         return image + ["policy_features"]
 
     def feature_scale(self) -> list[float] | None:
         """Per-value divisors of the Q-network's features (None: all ones)."""
         scale, any_set = [], False
-        for k in self.inputs:
+        for k in self.vector_inputs:
             s = FEATURE_SCALES[k]
-            n = {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
-                 "action_history": self.history * self.n_actions}[k]
+            n = self._width(k)
             any_set |= s is not None
             scale += list(s) * (n // len(s)) if s is not None else [1.0] * n
         return scale if any_set else None
@@ -191,8 +222,12 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
     if spec.frames:
         out.append(CatFrames(N=spec.frames, dim=-1, in_keys=["causal_features"],
                              out_keys=["feature_history"]))
-    if len(spec.inputs) > 1:
-        out.append(CatTensors(list(spec.inputs), "policy_features", del_keys=False))
+    if spec.uses_ego_map:
+        from ..transforms.egomap import EgoMap
+
+        out.append(EgoMap(**spec.ego_map))
+    if len(spec.vector_inputs) > 1:
+        out.append(CatTensors(list(spec.vector_inputs), "policy_features", del_keys=False))
     return out
 
 
@@ -234,9 +269,14 @@ def build_policy(spec: PolicySpec, action_spec, *, device="cpu", seed: int | Non
     """
     from torchrl.modules import EGreedyModule, QValueActor
 
-    from ..modules import CBNGate, FeatureQNet, ThesisQNet
+    from ..modules import CBNGate, FeatureQNet, MapQNet, ThesisQNet
 
-    if spec.image:
+    if "ego_map" in spec.inputs:
+        from ..transforms.egomap import EgoMap
+
+        net = MapQNet(spec.n_actions, spec.n_features, device=device,
+                      map_size=EgoMap(**spec.ego_map).size, feature_scale=spec.feature_scale())
+    elif spec.image:
         net = ThesisQNet(spec.n_actions, n_features=spec.n_features, device=device,
                          image_size=(spec.image_size, spec.image_size),
                          feature_scale=spec.feature_scale())

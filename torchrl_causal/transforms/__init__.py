@@ -12,6 +12,8 @@
 * :func:`make_causal_transforms` -- the whole stack for a ``DroneNavEnv``.
 * :class:`ActionHistory` -- the last actions as an observation (the policy's
   short-term memory; not one of the nine variables).
+* :class:`EgoMap` -- an egocentric occupancy map and the goal's remembered place,
+  from depth, the goal measurement and dead reckoning (the generalist's memory).
 
 The altitude needs no transform: ``Discretize`` reads the env's ``altitude``
 key directly (rename another env's key with TorchRL's ``RenameTransform`` or
@@ -22,6 +24,7 @@ from torchrl_causal.transforms.depth import SECTION_NAMES, DepthSections, sectio
 from torchrl_causal.transforms.discretize import Discretize, Thresholds
 from torchrl_causal.transforms.estimated_depth import EstimatedDepth
 from torchrl_causal.transforms.goal import GoalFeatures
+from torchrl_causal.transforms.egomap import GOAL_MEMORY_FIELDS, EgoMap
 from torchrl_causal.transforms.history import ActionHistory
 from torchrl_causal.transforms.stack import make_causal_transforms
 
@@ -29,7 +32,9 @@ __all__ = [
     "ActionHistory",
     "DepthSections",
     "Discretize",
+    "EgoMap",
     "EstimatedDepth",
+    "GOAL_MEMORY_FIELDS",
     "GoalFeatures",
     "SECTION_NAMES",
     "Thresholds",

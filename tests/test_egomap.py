@@ -1,0 +1,160 @@
+"""EgoMap on real MuJoCo scenes: dead reckoning, obstacles where they stand, goal memory."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import SerialEnv, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_causal.envs import DroneNavEnv
+from torchrl_causal.modules import MapQNet
+from torchrl_causal.pretrained import PolicySpec, build_policy, with_policy_features
+from torchrl_causal.schema import ACTION_NAMES
+from torchrl_causal.transforms import EgoMap
+
+A = {name: i for i, name in enumerate(ACTION_NAMES)}
+
+
+def _start_frame(env, point):
+    """A world point in the frame of the episode's start pose (x ahead, y left)."""
+    lay = env.layout
+    sx, sy, _ = lay.start_pos
+    yaw = math.radians(lay.start_yaw_deg)
+    dx, dy = point[0] - sx, point[1] - sy
+    return (math.cos(yaw) * dx + math.sin(yaw) * dy, -math.sin(yaw) * dx + math.cos(yaw) * dy)
+
+
+def _fly(env, td, names):
+    for name in names:
+        td = env.step(td.set("action", torch.tensor(A[name])))
+        assert not bool(td["next", "done"]), name
+        td = env.step_mdp(td)
+    return td
+
+
+def test_dead_reckoning_matches_the_simulator_pose():
+    base = DroneNavEnv("random", split="train", seed=3)
+    env = TransformedEnv(base, EgoMap())
+    td = env.reset()
+    td = _fly(env, td, ["turn_left", "left", "turn_left", "turn_left", "backward", "turn_right",
+                        "right", "ascend"])
+    pose = env.transform._state["pose"][0]
+    x, y, _, yaw = base.drone_pose()
+    ex, ey = _start_frame(base, (x, y))
+    assert float(pose[0]) == pytest.approx(ex, abs=1e-4)
+    assert float(pose[1]) == pytest.approx(ey, abs=1e-4)
+    dyaw = (yaw - base.layout.start_yaw_deg + 180) % 360 - 180
+    assert math.degrees(float(pose[2])) == pytest.approx(dyaw, abs=1e-3)
+
+
+def _occupied_points(transform, index=0):
+    occ = transform._state["occ"][index].nonzero().float()
+    half = transform.cells / 2.0
+    return (occ - half + 0.5) * transform.resolution  # cell centres, start frame (x, y)
+
+
+@pytest.mark.parametrize("layout_index", [0, 1, 2])
+def test_obstacle_cells_lie_on_obstacles_or_the_board(layout_index):
+    base = DroneNavEnv("random", split="heldout", layout_index=layout_index, seed=0)
+    env = TransformedEnv(base, EgoMap())
+    td = env.reset()
+    td = _fly(env, td, ["turn_left", "turn_left", "turn_right", "turn_right", "turn_right",
+                        "turn_right"])
+    pts = _occupied_points(env.transform).numpy()
+    assert len(pts) > 5  # the obstacle across the line of sight is seen
+    lay = base.layout
+    solids = [(_start_frame(base, o.center[:2]), o.footprint_radius()) for o in lay.obstacles]
+    gw = lay.goal_size[0]
+    solids.append((_start_frame(base, lay.goal_center[:2]), gw / 2 + 0.05))
+    slack = 1.5 * env.transform.resolution
+    for p in pts:
+        gaps = [math.hypot(p[0] - c[0], p[1] - c[1]) - r for c, r in solids]
+        assert min(gaps) < slack, (p, gaps)
+
+
+def test_goal_memory_locates_the_board_and_keeps_it_out_of_view():
+    base = DroneNavEnv(seed=0)  # thesis scene: the board is in view at reset
+    env = TransformedEnv(base, EgoMap())
+    td = env.reset()
+    mem = td["goal_memory"]
+    assert float(mem[0]) == 1.0 and float(mem[5]) == 0.0
+    fwd, left = 5 * float(mem[1]), 5 * float(mem[2])
+    gx, gy = _start_frame(base, base.layout.goal_center[:2])
+    # board centre, from range and bearing; the pillar hides part of the board, which
+    # moves the visible box's centre 6-7 degrees left (0.33 m at 2.9 m)
+    assert math.hypot(fwd - gx, left - gy) < 0.45
+    # turn away: after six 15-degree left turns the board is out of view, on the right
+    td = _fly(env, td, ["turn_left"] * 6)
+    mem = td["goal_memory"]
+    assert not bool(td["goal_in_sight"])
+    assert float(mem[0]) == 1.0 and 0 < float(mem[5]) <= 6 / 50  # steps since last seen
+    f2, l2 = 5 * float(mem[1]), 5 * float(mem[2])
+    x, y, _, yaw = base.drone_pose()
+    gx, gy = base.layout.goal_center[0] - x, base.layout.goal_center[1] - y
+    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    assert math.hypot(f2 - (c * gx + s * gy), l2 - (-s * gx + c * gy)) < 0.45
+    assert l2 < -2.0  # about 90 degrees to the right
+    # the goal channel marks it on the map's right edge (2.8 m away, beyond the 2.4 m window)
+    goal = td["ego_map"][2].nonzero()
+    size = env.transform.size
+    assert len(goal) == 9 and bool((goal[:, 1] >= size - 3).all())
+    assert bool((goal[:, 0] - size / 2).abs().max() <= 4)
+
+
+def test_specs_batched_and_partial_reset():
+    env = TransformedEnv(SerialEnv(2, lambda: DroneNavEnv("random", image_size=48, seed=0)),
+                         EgoMap(size=16, resolution=0.2))
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    td = env.step(td.set("action", torch.tensor([A["forward"], A["turn_left"]])))["next"]
+    before = env.transform._state["pose"].clone()
+    td2 = env.reset(td.clone().set("_reset", torch.tensor([[True], [False]])))
+    after = env.transform._state["pose"]
+    assert torch.equal(after[0], torch.zeros(3))
+    assert torch.equal(after[1], before[1])
+    assert td2["ego_map"].shape == (2, 3, 16, 16) and td2["ego_map"].dtype == torch.uint8
+
+
+def test_bad_options_are_named():
+    with pytest.raises(ValueError, match="size must be an int >= 8, got 4"):
+        EgoMap(size=4)
+    with pytest.raises(ValueError, match="resolution"):
+        EgoMap(resolution=-0.1)
+    with pytest.raises(ValueError, match="world_size"):
+        EgoMap(size=64, resolution=0.5, world_size=10.0)
+    with pytest.raises(ValueError, match="fov_deg"):
+        EgoMap(fov_deg=200)
+    env = TransformedEnv(DroneNavEnv(image_size=32, seed=0), EgoMap())
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.transform._step(env.fake_tensordict(), env.fake_tensordict()["next"])
+
+
+def test_map_policy_spec_builds_a_map_qnet_that_acts():
+    spec = PolicySpec(inputs=["ego_map", "causal_features", "goal_memory", "action_history"],
+                      history=2, image=False, explorer="egreedy",
+                      ego_map={"size": 16, "resolution": 0.25})
+    assert spec.actor_keys == ["ego_map", "policy_features"] and spec.n_features == 9 + 6 + 16
+    env = with_policy_features(spec, DroneNavEnv(image_size=48, seed=0), seed=0)
+    actor, _ = build_policy(spec, env.action_spec_unbatched)
+    assert isinstance(actor.module[0].module if hasattr(actor.module[0], "module")
+                      else actor.module[0], MapQNet) or "MapQNet" in repr(actor)
+    td = env.rollout(3, actor)
+    assert td["action"].shape == (3,) and td["next", "ego_map"].shape == (3, 3, 16, 16)
+    assert PolicySpec.from_json(spec.to_json()) == spec
+    with pytest.raises(ValueError, match="set image=False"):
+        PolicySpec(inputs=["ego_map", "causal_features"])
+
+
+def test_map_qnet_checks_its_input():
+    net = MapQNet(8, n_features=4, map_size=16)
+    assert net(torch.zeros(5, 3, 16, 16, dtype=torch.uint8), torch.zeros(5, 4)).shape == (5, 8)
+    with pytest.raises(ValueError, match=r"map of shape \[\.\.\., 3, 16, 16\]"):
+        net(torch.zeros(5, 3, 32, 32), torch.zeros(5, 4))
+    with pytest.raises(ValueError, match="pass the features"):
+        net(torch.zeros(5, 3, 16, 16))
+    assert np.isfinite(net(torch.full((1, 3, 16, 16), 255, dtype=torch.uint8),
+                           torch.ones(1, 4)).detach().numpy()).all()

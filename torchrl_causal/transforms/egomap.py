@@ -1,0 +1,358 @@
+"""A top-down memory of what the drone has seen: an egocentric occupancy map and the goal's place.
+
+A feed-forward policy that reads only the current frame forgets an obstacle the
+moment it leaves the camera's 60 degree view and forgets the goal the moment it
+is hidden; on random layouts it then crashes into obstacles beside it or
+searches in circles (docs/generalisation.rst). :class:`EgoMap` gives the policy
+the memory a navigation stack keeps (the egocentric maps of e.g. Gupta et al.,
+2017, "Cognitive Mapping and Planning"; Chaplot et al., 2020, "Active Neural
+SLAM"), built from what a real drone has too:
+
+* **odometry by dead reckoning** from the commanded actions (each action is a
+  known move of ``step_size`` metres or a turn of ``turn_deg`` degrees; a move
+  that is blocked ends the episode as a crash), in the frame of the episode's
+  start pose;
+* **a depth scan**: for every image column, the nearest depth pixel within
+  ``band`` metres of the camera's height is an obstacle point; the cells along
+  the ray before it are seen free. The points are written into a world-frame
+  grid that lives for the episode;
+* **the goal's last estimated position**: each time ``goal_in_sight``, the
+  goal measurement (range along the ray through the box centre, bearing, and
+  the box's vertical position when ``goal_box`` is there) gives the board's
+  place in the start frame; it is kept while the goal is out of view.
+
+It writes ``ego_map`` (uint8 ``[..., 3, size, size]``: obstacle, seen-free and
+goal channels, 0 or 255, a ``size`` x ``size`` window of ``resolution``-metre
+cells centred on the drone with its heading pointing up, row 0 ahead; the goal
+is a 3 x 3 mark, drawn at the window's edge in its direction when it is
+farther) and
+``goal_memory`` (float32 ``[..., 6]``: known flag, the goal's forward and
+leftward offset in metres / 5, its height above the camera in metres, its
+horizontal distance / 5, and the steps since it was last seen / 50, capped at 1).
+
+The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
+image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
+after the feature stack has written it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from torchrl.data import Bounded
+from torchrl.envs.transforms import Transform
+
+__all__ = ["EgoMap", "GOAL_MEMORY_FIELDS"]
+
+#: The values of ``goal_memory``, in order.
+GOAL_MEMORY_FIELDS: tuple[str, ...] = (
+    "known", "forward_5m", "left_5m", "up_m", "distance_5m", "steps_since_seen_50",
+)
+
+
+def _number(name, value, low=0.0, strict=True):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > low if strict else value >= low)
+    if not ok:
+        raise ValueError(f"EgoMap {name} must be a finite number {'>' if strict else '>='} "
+                         f"{low}, got {value!r}")
+
+
+class EgoMap(Transform):
+    """Egocentric occupancy map and goal memory from depth, goal measurement and dead reckoning.
+
+    Args:
+        size: side of the written window, in cells (>= 8).
+        resolution: cell side (m).
+        world_size: side of the episode's world-frame grid (m), centred on the
+            start pose; points outside it are dropped.
+        max_range: depth beyond this is not used (m): no obstacle, and free
+            space is carved only up to it.
+        band: obstacle points are the depth pixels within this many metres above
+            or below the camera.
+        step_size, turn_deg: the env's move (m) and turn (deg) per action
+            (default: read from the env the transform is appended to, else
+            0.25 and 15).
+        fov_deg: the camera's vertical field of view (default: the env's, else 60).
+        n_actions: size of the action space (actions in
+            :data:`~torchrl_causal.schema.ACTION_NAMES` order).
+        action_key: the action's key (index or one-hot).
+
+    Example:
+        >>> import torch
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl_causal.envs import DroneNavEnv
+        >>> env = TransformedEnv(DroneNavEnv(seed=0), EgoMap())
+        >>> td = env.reset()
+        >>> td["ego_map"].shape, td["goal_memory"][0].item()  # the goal is in view
+        (torch.Size([3, 32, 32]), 1.0)
+        >>> td = env.step(td.set("action", torch.tensor(6)))["next"]  # turn left 15 deg
+        >>> bool(td["ego_map"][0].any())  # the pillar ahead is on the map
+        True
+    """
+
+    def __init__(self, size: int = 32, resolution: float = 0.15, *, world_size: float = 20.0,
+                 max_range: float = 4.0, band: float = 0.3, step_size: float | None = None,
+                 turn_deg: float | None = None, fov_deg: float | None = None,
+                 n_actions: int = 8, action_key="action"):
+        if isinstance(size, bool) or not isinstance(size, int) or size < 8:
+            raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
+        _number("resolution", resolution)
+        _number("world_size", world_size)
+        _number("max_range", max_range)
+        _number("band", band)
+        for name, val in (("step_size", step_size), ("turn_deg", turn_deg)):
+            if val is not None:
+                _number(name, val)
+        if fov_deg is not None and not (isinstance(fov_deg, (int, float)) and 0 < fov_deg < 180):
+            raise ValueError(f"EgoMap fov_deg must be in (0, 180), got {fov_deg!r}")
+        if world_size < size * resolution:
+            raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
+                             f"(size * resolution = {size * resolution:g} m)")
+        super().__init__(in_keys=["depth", "goal_in_sight", "goal_distance", "goal_angle"],
+                         out_keys=["ego_map", "goal_memory"])
+        self.size = int(size)
+        self.resolution = float(resolution)
+        self.cells = int(math.ceil(world_size / resolution))
+        self.max_range = float(max_range)
+        self.band = float(band)
+        self._options = {"step_size": step_size, "turn_deg": turn_deg, "fov_deg": fov_deg}
+        self.n_actions = int(n_actions)
+        self.action_key = action_key
+        self._state = None  # per flattened batch entry: pose, maps, goal
+
+    # ----------------------------------------------------------- geometry
+    def _setting(self, name, default):
+        val = self._options[name]
+        if val is not None:
+            return float(val)
+        parent = self.parent
+        base = getattr(parent, "base_env", None) if parent is not None else None
+        for obj in (base, getattr(base, "base_env", None)):
+            v = getattr(obj, name, None) if obj is not None else None
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                return float(v)
+        return float(default)
+
+    def _deltas(self, device):
+        s = self._setting("step_size", 0.25)
+        t = math.radians(self._setting("turn_deg", 15.0))
+        # (forward, left, yaw) per action, in ACTION_NAMES order; ascend/descend move no cell
+        table = [(s, 0, 0), (-s, 0, 0), (0, s, 0), (0, -s, 0), (0, 0, 0), (0, 0, 0), (0, 0, t),
+                 (0, 0, -t)]
+        return torch.tensor(table[: self.n_actions], dtype=torch.float32, device=device)
+
+    def _fresh(self, n, device):
+        return {
+            "pose": torch.zeros(n, 3, device=device),  # x, y, yaw in the start frame
+            "occ": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
+            "free": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
+            "goal": torch.zeros(n, 3, device=device),  # x, y, z-above-start-camera
+            "known": torch.zeros(n, dtype=torch.bool, device=device),
+            "since": torch.zeros(n, device=device),
+            "alt0": torch.zeros(n, device=device),
+        }
+
+    # ------------------------------------------------------------ updates
+    def _scan(self, depth):
+        """Per image column: the nearest in-band depth (m; inf if none) and its bearing (rad)."""
+        n, h, w = depth.shape
+        f = (h / 2.0) / math.tan(math.radians(self._setting("fov_deg", 60.0)) / 2.0)
+        v = torch.arange(h, device=depth.device, dtype=torch.float32) + 0.5
+        u = torch.arange(w, device=depth.device, dtype=torch.float32) + 0.5
+        up = (h / 2.0 - v)[None, :, None] / f * depth  # height of each pixel above the camera
+        valid = (up.abs() <= self.band) & (depth > 0) & (depth < self.max_range)
+        z = torch.where(valid, depth, torch.full_like(depth, float("inf"))).amin(1)  # [n, w]
+        tan_left = (w / 2.0 - u) / f  # [w]
+        return z, tan_left, f
+
+    def _write(self, st, idx, depth):
+        z, tan_left, _ = self._scan(depth)
+        pose = st["pose"][idx]
+        n, w = z.shape
+        c, s = pose[:, 2].cos()[:, None, None], pose[:, 2].sin()[:, None, None]
+        # free space: samples along each column's ray up to the hit (or max_range)
+        reach = torch.where(torch.isfinite(z), z, torch.full_like(z, self.max_range))
+        k = int(math.ceil(self.max_range / (self.resolution / 2)))
+        t = torch.linspace(0.0, 1.0, k + 1, device=z.device)[:-1]  # [k]
+        fwd = reach[:, :, None] * t[None, None, :] - self.resolution / 2  # stop short of the hit
+        fwd = fwd.clamp(min=0.0)
+        left = fwd * tan_left[None, :, None]
+        self._mark(st["free"], idx, pose, fwd, left, c, s)
+        hit = torch.isfinite(z)
+        fwd_h = torch.where(hit, z, torch.zeros_like(z))[:, :, None]
+        left_h = fwd_h * tan_left[None, :, None]
+        self._mark(st["occ"], idx, pose, fwd_h, left_h, c, s, keep=hit[:, :, None])
+
+    def _mark(self, grid, idx, pose, fwd, left, c, s, keep=None):
+        x = pose[:, 0, None, None] + c * fwd - s * left
+        y = pose[:, 1, None, None] + s * fwd + c * left
+        half = self.cells / 2.0
+        i = torch.floor(x / self.resolution + half).long()  # row: +x of the start frame
+        j = torch.floor(y / self.resolution + half).long()  # column: +y
+        ok = (i >= 0) & (i < self.cells) & (j >= 0) & (j < self.cells)
+        if keep is not None:
+            ok = ok & keep
+        b = idx[:, None, None].expand_as(i)
+        grid[b[ok], i[ok], j[ok]] = True
+
+    def _update_goal(self, st, idx, sight, dist, angle, box, altitude, hw):
+        h, w = hw
+        if not sight.any():
+            return
+        f = (h / 2.0) / math.tan(math.radians(self._setting("fov_deg", 60.0)) / 2.0)
+        tan_a = torch.tan(torch.deg2rad(angle))
+        if box is not None:
+            v = (box[:, 1] + box[:, 3]) / 2.0
+            tan_e = (h / 2.0 - v) / f
+        else:
+            tan_e = torch.zeros_like(tan_a)
+        fwd = dist / torch.sqrt(1.0 + tan_a ** 2 + tan_e ** 2)
+        left, up = fwd * tan_a, fwd * tan_e
+        pose = st["pose"][idx]
+        c, s = pose[:, 2].cos(), pose[:, 2].sin()
+        gx = pose[:, 0] + c * fwd - s * left
+        gy = pose[:, 1] + s * fwd + c * left
+        gz = altitude - st["alt0"][idx] + up
+        new = torch.stack([gx, gy, gz], -1)
+        sel = idx[sight]
+        st["goal"][sel] = new[sight]
+        st["known"][sel] = True
+        st["since"][sel] = 0.0
+
+    # ------------------------------------------------------------ outputs
+    def _outputs(self, st, idx, altitude):
+        pose = st["pose"][idx]
+        n = idx.numel()
+        world = torch.stack([st["occ"][idx], st["free"][idx]], 1).float()  # [n, 2, C, C]
+        known = st["known"][idx]
+        # egocentric window: output row r is ahead of the drone, column q to its left
+        c, s = pose[:, 2].cos(), pose[:, 2].sin()
+        span = self.size * self.resolution
+        extent = self.cells * self.resolution
+        lin = (torch.arange(self.size, device=world.device, dtype=torch.float32) + 0.5) / self.size
+        ahead = (0.5 - lin) * span  # row 0 ahead
+        leftw = (0.5 - lin) * span  # column 0 to the left
+        a, l_ = ahead[:, None], leftw[None, :]
+        wx = pose[:, 0, None, None] + c[:, None, None] * a - s[:, None, None] * l_
+        wy = pose[:, 1, None, None] + s[:, None, None] * a + c[:, None, None] * l_
+        # grid_sample: x indexes the last dim (world y), y the rows (world x), in [-1, 1]
+        grid = torch.stack([wy / (extent / 2), wx / (extent / 2)], -1)
+        ego = F.grid_sample(world, grid, mode="nearest", padding_mode="zeros", align_corners=False)
+        # goal vector in the drone frame
+        g = st["goal"][idx]
+        dx, dy = g[:, 0] - pose[:, 0], g[:, 1] - pose[:, 1]
+        fwd = c * dx + s * dy
+        left = -s * dx + c * dy
+        # goal channel: a 3x3 mark at the goal, or where its direction leaves the window
+        reach = torch.maximum(fwd.abs(), left.abs()).clamp(min=1e-6)
+        shrink = torch.clamp((0.5 * span - 1.5 * self.resolution) / reach, max=1.0)
+        row = torch.floor((0.5 - fwd * shrink / span) * self.size).long()
+        col = torch.floor((0.5 - left * shrink / span) * self.size).long()
+        goal = torch.zeros(n, 1, self.size, self.size, device=ego.device)
+        rows = torch.arange(n, device=ego.device)[known]
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                goal[rows, 0, (row[known] + di).clamp(0, self.size - 1),
+                     (col[known] + dj).clamp(0, self.size - 1)] = 1.0
+        ego = (torch.cat([ego, goal], 1) > 0.5).to(torch.uint8) * 255
+        up = g[:, 2] - (altitude - st["alt0"][idx])
+        k = known.float()
+        vec = torch.stack([k, k * fwd / 5.0, k * left / 5.0, k * up,
+                           k * torch.sqrt(fwd ** 2 + left ** 2) / 5.0,
+                           (st["since"][idx] / 50.0).clamp(max=1.0)], -1)
+        return ego, vec
+
+    def _observe(self, td, idx, st):
+        depth = td.get("depth")
+        batch = td.batch_size
+        depth = depth.reshape(-1, *depth.shape[len(batch):])[idx].float()
+        hw = tuple(depth.shape[-2:])
+
+        def flat(key, default=0.0):
+            val = td.get(key, None)
+            if val is None:
+                return None
+            return val.reshape(val.shape[: len(batch)].numel(), -1)[idx]
+
+        altitude = flat("altitude")
+        altitude = altitude[:, 0].float() if altitude is not None else torch.zeros(idx.numel())
+        self._write(st, idx, depth)
+        sight = flat("goal_in_sight")[:, 0].bool()
+        dist = torch.nan_to_num(flat("goal_distance")[:, 0].float(), nan=0.0)
+        angle = flat("goal_angle")[:, 0].float()
+        box = flat("goal_box")
+        self._update_goal(st, idx, sight, dist, angle, None if box is None else box.float(),
+                          altitude, hw)
+        return self._outputs(st, idx, altitude)
+
+    def _set(self, td, ego, vec):
+        batch = td.batch_size
+        td.set("ego_map", ego.reshape(*batch, *ego.shape[1:]).to(td.device or ego.device))
+        td.set("goal_memory", vec.reshape(*batch, 6).to(td.device or vec.device))
+        return td
+
+    # -------------------------------------------------------- Transform API
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+               ) -> TensorDictBase:
+        batch = tensordict_reset.batch_size
+        n = max(1, batch.numel())
+        device = tensordict_reset.get("depth").device
+        mask = tensordict.get("_reset", None) if tensordict is not None else None
+        if self._state is None or self._state["pose"].shape[0] != n:
+            self._state = self._fresh(n, device)
+            mask = None
+        idx = torch.arange(n, device=device)
+        if mask is not None and mask.numel() == n:
+            sel = idx[mask.reshape(-1).to(device)]
+            fresh = self._fresh(sel.numel(), device)
+            for key, val in fresh.items():
+                self._state[key][sel] = val
+        else:
+            self._state = self._fresh(n, device)
+        alt = tensordict_reset.get("altitude", None)
+        if alt is not None:
+            alt = alt.reshape(n, -1)[:, 0].float()
+            if mask is not None and mask.numel() == n:
+                m = mask.reshape(-1).to(device)
+                self._state["alt0"][m] = alt[m]
+            else:
+                self._state["alt0"] = alt.clone()
+        ego, vec = self._observe(tensordict_reset, idx, self._state)
+        return self._set(tensordict_reset, ego, vec)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        batch = next_tensordict.batch_size
+        n = max(1, batch.numel())
+        device = next_tensordict.get("depth").device
+        if self._state is None or self._state["pose"].shape[0] != n:
+            raise RuntimeError("EgoMap: step before reset (call env.reset() first)")
+        action = tensordict.get(self.action_key)
+        if action.shape[len(batch):] == (self.n_actions,):  # one-hot action spec
+            action = action.argmax(-1)
+        action = action.reshape(n).long().to(device)
+        d = self._deltas(device)[action]
+        pose = self._state["pose"]
+        c, s = pose[:, 2].cos(), pose[:, 2].sin()
+        pose[:, 0] += c * d[:, 0] - s * d[:, 1]
+        pose[:, 1] += s * d[:, 0] + c * d[:, 1]
+        pose[:, 2] = torch.remainder(pose[:, 2] + d[:, 2] + math.pi, 2 * math.pi) - math.pi
+        self._state["since"] += 1
+        idx = torch.arange(n, device=device)
+        ego, vec = self._observe(next_tensordict, idx, self._state)
+        return self._set(next_tensordict, ego, vec)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return next_tensordict
+
+    def transform_observation_spec(self, observation_spec):
+        shape = observation_spec.shape
+        observation_spec["ego_map"] = Bounded(0, 255, shape=(*shape, 3, self.size, self.size),
+                                              dtype=torch.uint8, device=observation_spec.device)
+        observation_spec["goal_memory"] = Bounded(-10.0, 10.0, shape=(*shape, 6),
+                                                  dtype=torch.float32,
+                                                  device=observation_spec.device)
+        return observation_spec
