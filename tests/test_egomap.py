@@ -158,3 +158,22 @@ def test_map_qnet_checks_its_input():
         net(torch.zeros(5, 3, 16, 16))
     assert np.isfinite(net(torch.full((1, 3, 16, 16), 255, dtype=torch.uint8),
                            torch.ones(1, 4)).detach().numpy()).all()
+
+
+def test_map_clearance_is_a_conservative_corridor_check():
+    from torchrl_causal.envs.layouts import DRONE_HALF_EXTENTS
+    from torchrl_causal.transforms.egomap import DRONE_HALF_WIDTH
+
+    assert DRONE_HALF_WIDTH == DRONE_HALF_EXTENTS[1]
+    base = DroneNavEnv(seed=0)  # thesis scene: the pillar's face 0.98 m ahead of the hull
+    env = TransformedEnv(base, EgoMap())
+    td = env.reset()
+    ahead, back, left, right = (2 * td["map_clearance"]).tolist()
+    assert 0.98 - 0.3 <= ahead <= 0.98 and back == left == right == 2.0
+    steps = 0
+    while 2 * float(td["map_clearance"][0]) >= base.step_size:
+        td = env.step(td.set("action", torch.tensor(A["forward"])))
+        assert not bool(td["next", "crashed"])  # the map said there was room
+        td, steps = env.step_mdp(td), steps + 1
+    assert steps == 3  # and the fourth step would hit the pillar:
+    assert bool(env.step(td.set("action", torch.tensor(A["forward"])))["next", "crashed"])

@@ -34,6 +34,7 @@ FEATURE_SCALES: dict[str, tuple[float, ...] | None] = {
     "action_history": None,
     "feature_history": _CF_SCALE,  # per frame of the stack
     "goal_memory": None,  # EgoMap writes it at order 1
+    "map_clearance": None,  # EgoMap, in [0, 1]
 }
 #: Inputs that are maps, read by the convolutions of :class:`~torchrl_causal.modules.MapQNet`.
 MAP_INPUTS = ("ego_map",)
@@ -51,7 +52,8 @@ class PolicySpec:
         n_actions: size of the action space.
         inputs: keys read beside ``pixels`` (empty: the image-only Fig. 5.1
             network); among ``causal_state``, ``causal_features``,
-            ``action_history``, ``feature_history``, ``goal_memory`` and the map
+            ``action_history``, ``feature_history``, ``goal_memory``,
+            ``map_clearance`` and the map
             ``ego_map`` (see ``ego_map``).
         history: length of :class:`~torchrl_causal.transforms.ActionHistory`
             (needed when ``"action_history"`` is an input).
@@ -70,8 +72,8 @@ class PolicySpec:
             False: the features alone (:class:`~torchrl_causal.modules.FeatureQNet`,
             an ablation).
         ego_map: keyword arguments of :class:`~torchrl_causal.transforms.EgoMap`,
-            appended to the stack when ``"ego_map"`` or ``"goal_memory"`` is an
-            input; ``"ego_map"`` as an input makes the network a
+            appended to the stack when ``"ego_map"``, ``"goal_memory"`` or
+            ``"map_clearance"`` is an input; ``"ego_map"`` as an input makes the network a
             :class:`~torchrl_causal.modules.MapQNet` (with ``image=False``).
         provenance: free-form record (command, seed, frames, commit, figures).
 
@@ -135,13 +137,13 @@ class PolicySpec:
         if self.frames:
             keys.append("feature_history")
         if self.uses_ego_map:
-            keys += ["ego_map", "goal_memory"]
+            keys += ["ego_map", "goal_memory", "map_clearance"]
         return keys
 
     @property
     def uses_ego_map(self) -> bool:
         """Whether an :class:`~torchrl_causal.transforms.EgoMap` is in the feature stack."""
-        return "ego_map" in self.inputs or "goal_memory" in self.inputs
+        return bool({"ego_map", "goal_memory", "map_clearance"} & set(self.inputs))
 
     @property
     def vector_inputs(self) -> list[str]:
@@ -150,7 +152,8 @@ class PolicySpec:
 
     def _width(self, key: str) -> int:
         return {"causal_state": 9, "causal_features": 9, "feature_history": 9 * self.frames,
-                "action_history": self.history * self.n_actions, "goal_memory": 6}[key]
+                "action_history": self.history * self.n_actions, "goal_memory": 6,
+                "map_clearance": 4}[key]
 
     @property
     def n_features(self) -> int:

@@ -24,12 +24,13 @@ from torchrl_causal.transforms.depth import SECTION_NAMES, DepthSections, sectio
 from torchrl_causal.transforms.discretize import Discretize, Thresholds
 from torchrl_causal.transforms.estimated_depth import EstimatedDepth
 from torchrl_causal.transforms.goal import GoalFeatures
-from torchrl_causal.transforms.egomap import GOAL_MEMORY_FIELDS, EgoMap
+from torchrl_causal.transforms.egomap import CLEARANCE_FIELDS, GOAL_MEMORY_FIELDS, EgoMap
 from torchrl_causal.transforms.history import ActionHistory
 from torchrl_causal.transforms.stack import make_causal_transforms
 
 __all__ = [
     "ActionHistory",
+    "CLEARANCE_FIELDS",
     "DepthSections",
     "Discretize",
     "EgoMap",

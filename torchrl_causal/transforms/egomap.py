@@ -28,7 +28,11 @@ is a 3 x 3 mark, drawn at the window's edge in its direction when it is
 farther) and
 ``goal_memory`` (float32 ``[..., 6]``: known flag, the goal's forward and
 leftward offset in metres / 5, its height above the camera in metres, its
-horizontal distance / 5, and the steps since it was last seen / 50, capped at 1).
+horizontal distance / 5, and the steps since it was last seen / 50, capped at 1)
+and ``map_clearance`` (float32 ``[..., 4]``: how far the drone's hull can move
+ahead, back, left and right before it meets an obstacle cell of the map, in
+metres / 2, capped at 1 -- a corridor check of the four horizontal moves
+against everything seen so far, also beside and behind the camera's view).
 
 The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
 image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
@@ -45,12 +49,17 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs.transforms import Transform
 
-__all__ = ["EgoMap", "GOAL_MEMORY_FIELDS"]
+__all__ = ["EgoMap", "GOAL_MEMORY_FIELDS", "CLEARANCE_FIELDS"]
+
+#: Half width of the drone's collision hull (m), as in ``layouts.DRONE_HALF_EXTENTS``.
+DRONE_HALF_WIDTH = 0.12
 
 #: The values of ``goal_memory``, in order.
 GOAL_MEMORY_FIELDS: tuple[str, ...] = (
     "known", "forward_5m", "left_5m", "up_m", "distance_5m", "steps_since_seen_50",
 )
+#: The values of ``map_clearance``, in order (free distance on the map / 2 m, capped at 1).
+CLEARANCE_FIELDS: tuple[str, ...] = ("forward", "backward", "left", "right")
 
 
 def _number(name, value, low=0.0, strict=True):
@@ -113,7 +122,7 @@ class EgoMap(Transform):
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
         super().__init__(in_keys=["depth", "goal_in_sight", "goal_distance", "goal_angle"],
-                         out_keys=["ego_map", "goal_memory"])
+                         out_keys=["ego_map", "goal_memory", "map_clearance"])
         self.size = int(size)
         self.resolution = float(resolution)
         self.cells = int(math.ceil(world_size / resolution))
@@ -218,6 +227,15 @@ class EgoMap(Transform):
         gy = pose[:, 1] + s * fwd + c * left
         gz = altitude - st["alt0"][idx] + up
         new = torch.stack([gx, gy, gz], -1)
+        if box is not None:
+            # a box cut by the image border (the board overflows the view when close)
+            # biases the centre's bearing / elevation: keep the remembered value
+            known = st["known"][idx]
+            cut_h = known & ((box[:, 0] <= 0.5) | (box[:, 2] >= w - 0.5))
+            cut_v = known & ((box[:, 1] <= 0.5) | (box[:, 3] >= h - 0.5))
+            old = st["goal"][idx]
+            new[:, :2] = torch.where(cut_h[:, None], old[:, :2], new[:, :2])
+            new[:, 2] = torch.where(cut_v, old[:, 2], new[:, 2])
         sel = idx[sight]
         st["goal"][sel] = new[sight]
         st["known"][sel] = True
@@ -264,7 +282,29 @@ class EgoMap(Transform):
         vec = torch.stack([k, k * fwd / 5.0, k * left / 5.0, k * up,
                            k * torch.sqrt(fwd ** 2 + left ** 2) / 5.0,
                            (st["since"][idx] / 50.0).clamp(max=1.0)], -1)
-        return ego, vec
+        return ego, vec, self._clearance(st, idx)
+
+    def _clearance(self, st, idx):
+        """Free distance (m / 2, capped at 1) the drone's hull can move ahead, back, left, right."""
+        out = torch.ones(idx.numel(), 4, device=st["pose"].device)
+        half = self.cells / 2.0
+        width = DRONE_HALF_WIDTH + self.resolution / 2
+        for row, b in enumerate(idx.tolist()):
+            cells = st["occ"][b].nonzero()
+            if not len(cells):
+                continue
+            xy = (cells.float() - half + 0.5) * self.resolution
+            x, y, yaw = st["pose"][b]
+            dx, dy = xy[:, 0] - x, xy[:, 1] - y
+            fwd = yaw.cos() * dx + yaw.sin() * dy
+            left = -yaw.sin() * dx + yaw.cos() * dy
+            for k, (along, across) in enumerate(((fwd, left), (-fwd, left), (left, fwd),
+                                                 (-left, fwd))):
+                hit = (along > 0) & (across.abs() <= width)
+                if hit.any():
+                    gap = along[hit].min() - self.resolution / 2 - DRONE_HALF_WIDTH
+                    out[row, k] = (gap.clamp(min=0.0) / 2.0).clamp(max=1.0)
+        return out
 
     def _observe(self, td, idx, st):
         depth = td.get("depth")
@@ -289,8 +329,9 @@ class EgoMap(Transform):
                           altitude, hw)
         return self._outputs(st, idx, altitude)
 
-    def _set(self, td, ego, vec):
+    def _set(self, td, ego, vec, clear):
         batch = td.batch_size
+        td.set("map_clearance", clear.reshape(*batch, 4).to(td.device or clear.device))
         td.set("ego_map", ego.reshape(*batch, *ego.shape[1:]).to(td.device or ego.device))
         td.set("goal_memory", vec.reshape(*batch, 6).to(td.device or vec.device))
         return td
@@ -321,8 +362,7 @@ class EgoMap(Transform):
                 self._state["alt0"][m] = alt[m]
             else:
                 self._state["alt0"] = alt.clone()
-        ego, vec = self._observe(tensordict_reset, idx, self._state)
-        return self._set(tensordict_reset, ego, vec)
+        return self._set(tensordict_reset, *self._observe(tensordict_reset, idx, self._state))
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = next_tensordict.batch_size
@@ -342,8 +382,7 @@ class EgoMap(Transform):
         pose[:, 2] = torch.remainder(pose[:, 2] + d[:, 2] + math.pi, 2 * math.pi) - math.pi
         self._state["since"] += 1
         idx = torch.arange(n, device=device)
-        ego, vec = self._observe(next_tensordict, idx, self._state)
-        return self._set(next_tensordict, ego, vec)
+        return self._set(next_tensordict, *self._observe(next_tensordict, idx, self._state))
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         return next_tensordict
@@ -355,4 +394,7 @@ class EgoMap(Transform):
         observation_spec["goal_memory"] = Bounded(-10.0, 10.0, shape=(*shape, 6),
                                                   dtype=torch.float32,
                                                   device=observation_spec.device)
+        observation_spec["map_clearance"] = Bounded(0.0, 1.0, shape=(*shape, 4),
+                                                    dtype=torch.float32,
+                                                    device=observation_spec.device)
         return observation_spec
