@@ -177,3 +177,23 @@ def test_map_clearance_is_a_conservative_corridor_check():
         td, steps = env.step_mdp(td), steps + 1
     assert steps == 3  # and the fourth step would hit the pillar:
     assert bool(env.step(td.set("action", torch.tensor(A["forward"])))["next", "crashed"])
+
+
+def test_shielded_policy_never_takes_a_masked_move():
+    spec = PolicySpec(inputs=["goal_memory", "map_clearance"], image=False, shield=True,
+                      explorer="egreedy", eps_init=1.0, eps_end=1.0)  # uniformly random acting
+    base = DroneNavEnv(seed=0)  # the pillar ahead: forward is masked after three steps
+    env = with_policy_features(spec, base, seed=0)
+    actor, explorer = build_policy(spec, env.action_spec_unbatched, seed=0)
+    from tensordict.nn import TensorDictSequential
+
+    policy = TensorDictSequential(actor, explorer)
+    td = env.rollout(60, policy, break_when_any_done=False)
+    masks, actions = td["action_mask"], td["action"]
+    assert (~masks).any()  # some moves were masked
+    assert bool(masks.gather(-1, actions[:, None]).all())  # never taken
+    assert not bool(td["next", "crashed"].any())
+    with pytest.raises(ValueError, match="shield=True needs EgoMap"):
+        PolicySpec(inputs=["causal_features"], shield=True)
+    with pytest.raises(ValueError, match="min_clearance"):
+        EgoMap(min_clearance=-1.0)

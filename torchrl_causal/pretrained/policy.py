@@ -75,6 +75,10 @@ class PolicySpec:
             appended to the stack when ``"ego_map"``, ``"goal_memory"`` or
             ``"map_clearance"`` is an input; ``"ego_map"`` as an input makes the network a
             :class:`~torchrl_causal.modules.MapQNet` (with ``image=False``).
+        shield: act only on moves that :class:`~torchrl_causal.transforms.EgoMap`'s
+            ``action_mask`` allows (the Q-values of the others are masked out
+            in the actor, and the explorer draws among the allowed ones);
+            needs an EgoMap input.
         provenance: free-form record (command, seed, frames, commit, figures).
 
     Example:
@@ -98,6 +102,7 @@ class PolicySpec:
     annealing_frames: int = 8000
     image: bool = True
     ego_map: dict = field(default_factory=dict)
+    shield: bool = False
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -110,6 +115,9 @@ class PolicySpec:
             raise ValueError("PolicySpec: 'ego_map' takes the image's place in the network "
                              "(MapQNet); set image=False")
         self.ego_map = dict(self.ego_map)
+        if self.shield and not self.uses_ego_map:
+            raise ValueError("PolicySpec.shield=True needs EgoMap's action_mask: give an input "
+                             "among 'ego_map', 'goal_memory', 'map_clearance'")
         if "action_history" in self.inputs and not (isinstance(self.history, int)
                                                     and self.history >= 1):
             raise ValueError(f"PolicySpec.history must be an int >= 1 when 'action_history' is "
@@ -137,7 +145,7 @@ class PolicySpec:
         if self.frames:
             keys.append("feature_history")
         if self.uses_ego_map:
-            keys += ["ego_map", "goal_memory", "map_clearance"]
+            keys += ["ego_map", "goal_memory", "map_clearance", "action_mask"]
         return keys
 
     @property
@@ -286,13 +294,14 @@ def build_policy(spec: PolicySpec, action_spec, *, device="cpu", seed: int | Non
     else:
         net = FeatureQNet(spec.n_actions, spec.n_features, device=device,
                           feature_scale=spec.feature_scale())
-    actor = QValueActor(net, in_keys=spec.actor_keys, spec=action_spec)
+    mask = {"action_mask_key": "action_mask"} if spec.shield else {}
+    actor = QValueActor(net, in_keys=spec.actor_keys, spec=action_spec, **mask)
     eps = dict(eps_init=spec.eps_init, eps_end=spec.eps_end,
                annealing_num_steps=spec.annealing_frames)
     if spec.explorer == "egreedy":
-        return actor, EGreedyModule(action_spec, **eps)
+        return actor, EGreedyModule(action_spec, **eps, **mask)
     gate = CBNGate(spec.gate_mode, prob_causal_model=spec.prob_causal_model,
-                   threshold=spec.threshold, seed=seed, device=device, **eps)
+                   threshold=spec.threshold, seed=seed, device=device, **eps, **mask)
     return actor, gate
 
 

@@ -59,6 +59,11 @@ def margin_loss(q: torch.Tensor, expert: torch.Tensor, margin: float) -> torch.T
     return ((q + bonus).max(-1).values - q_e).mean()
 
 
+def _masks(actor) -> bool:
+    """Whether a ``QValueActor`` masks its action values with an action mask."""
+    return any(getattr(m, "action_mask_key", None) is not None for m in actor.modules())
+
+
 @dataclass
 class ImitationConfig:
     """Options of :class:`OracleImitation`.
@@ -241,6 +246,11 @@ class OracleImitation:
             td_loss = self.loss(batch)["loss"] if cfg.td_weight > 0 else 0.0
             valid = batch["expert_valid"].reshape(-1)
             q = self.actor(batch.clone(False))["action_value"]
+            mask = batch.get("action_mask", None)
+            if mask is not None and _masks(self.actor):
+                # a shielded student cannot take a masked move: no label there
+                expert = batch["expert_action"].reshape(-1).clamp(min=0)
+                valid = valid & mask.reshape(len(valid), -1).gather(-1, expert[:, None])[:, 0]
             if valid.any():
                 m = margin_loss(q[valid], batch["expert_action"].reshape(-1)[valid], cfg.margin)
             else:

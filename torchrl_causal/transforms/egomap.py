@@ -32,7 +32,13 @@ horizontal distance / 5, and the steps since it was last seen / 50, capped at 1)
 and ``map_clearance`` (float32 ``[..., 4]``: how far the drone's hull can move
 ahead, back, left and right before it meets an obstacle cell of the map, in
 metres / 2, capped at 1 -- a corridor check of the four horizontal moves
-against everything seen so far, also beside and behind the camera's view).
+against everything seen so far, also beside and behind the camera's view),
+and ``action_mask`` (bool ``[..., n_actions]``, TorchRL's action-mask
+convention): False for a horizontal move whose clearance is below
+``min_clearance`` and for a descent that would end below ``FLOOR_MARGIN``
+(0.15 m) of altitude; turns and ascents are always allowed. A policy built
+with ``PolicySpec(shield=True)`` never picks a masked move (a safety shield:
+the map says the hull would not fit).
 
 The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
 image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
@@ -46,13 +52,15 @@ import math
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
-from torchrl.data import Bounded
+from torchrl.data import Binary, Bounded
 from torchrl.envs.transforms import Transform
 
 __all__ = ["EgoMap", "GOAL_MEMORY_FIELDS", "CLEARANCE_FIELDS"]
 
 #: Half width of the drone's collision hull (m), as in ``layouts.DRONE_HALF_EXTENTS``.
 DRONE_HALF_WIDTH = 0.12
+#: ``action_mask`` forbids a descent that would end lower than this altitude (m).
+FLOOR_MARGIN = 0.15
 
 #: The values of ``goal_memory``, in order.
 GOAL_MEMORY_FIELDS: tuple[str, ...] = (
@@ -86,6 +94,8 @@ class EgoMap(Transform):
             (default: read from the env the transform is appended to, else
             0.25 and 15).
         fov_deg: the camera's vertical field of view (default: the env's, else 60).
+        min_clearance: ``action_mask`` allows a horizontal move only where
+            ``map_clearance`` (in metres) is at least this (0: every move).
         n_actions: size of the action space (actions in
             :data:`~torchrl_causal.schema.ACTION_NAMES` order).
         action_key: the action's key (index or one-hot).
@@ -104,15 +114,16 @@ class EgoMap(Transform):
     """
 
     def __init__(self, size: int = 32, resolution: float = 0.15, *, world_size: float = 20.0,
-                 max_range: float = 4.0, band: float = 0.3, step_size: float | None = None,
+                 max_range: float = 4.0, band: float = 0.2, step_size: float | None = None,
                  turn_deg: float | None = None, fov_deg: float | None = None,
-                 n_actions: int = 8, action_key="action"):
+                 min_clearance: float = 0.2, n_actions: int = 8, action_key="action"):
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
         _number("resolution", resolution)
         _number("world_size", world_size)
         _number("max_range", max_range)
         _number("band", band)
+        _number("min_clearance", min_clearance, strict=False)
         for name, val in (("step_size", step_size), ("turn_deg", turn_deg)):
             if val is not None:
                 _number(name, val)
@@ -122,13 +133,14 @@ class EgoMap(Transform):
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
         super().__init__(in_keys=["depth", "goal_in_sight", "goal_distance", "goal_angle"],
-                         out_keys=["ego_map", "goal_memory", "map_clearance"])
+                         out_keys=["ego_map", "goal_memory", "map_clearance", "action_mask"])
         self.size = int(size)
         self.resolution = float(resolution)
         self.cells = int(math.ceil(world_size / resolution))
         self.max_range = float(max_range)
         self.band = float(band)
         self._options = {"step_size": step_size, "turn_deg": turn_deg, "fov_deg": fov_deg}
+        self.min_clearance = float(min_clearance)
         self.n_actions = int(n_actions)
         self.action_key = action_key
         self._state = None  # per flattened batch entry: pose, maps, goal
@@ -327,11 +339,17 @@ class EgoMap(Transform):
         box = flat("goal_box")
         self._update_goal(st, idx, sight, dist, angle, None if box is None else box.float(),
                           altitude, hw)
-        return self._outputs(st, idx, altitude)
+        ego, vec, clear = self._outputs(st, idx, altitude)
+        mask = torch.ones(idx.numel(), self.n_actions, dtype=torch.bool, device=clear.device)
+        mask[:, :4] = 2.0 * clear >= self.min_clearance  # forward, backward, left, right
+        if self.n_actions > 5 and self.min_clearance > 0:  # descend: not into the floor
+            mask[:, 5] = altitude - self._setting("step_size", 0.25) >= FLOOR_MARGIN
+        return ego, vec, clear, mask
 
-    def _set(self, td, ego, vec, clear):
+    def _set(self, td, ego, vec, clear, mask):
         batch = td.batch_size
         td.set("map_clearance", clear.reshape(*batch, 4).to(td.device or clear.device))
+        td.set("action_mask", mask.reshape(*batch, self.n_actions).to(td.device or mask.device))
         td.set("ego_map", ego.reshape(*batch, *ego.shape[1:]).to(td.device or ego.device))
         td.set("goal_memory", vec.reshape(*batch, 6).to(td.device or vec.device))
         return td
@@ -394,6 +412,10 @@ class EgoMap(Transform):
         observation_spec["goal_memory"] = Bounded(-10.0, 10.0, shape=(*shape, 6),
                                                   dtype=torch.float32,
                                                   device=observation_spec.device)
+        observation_spec["action_mask"] = Binary(n=self.n_actions,
+                                                 shape=(*shape, self.n_actions),
+                                                 dtype=torch.bool,
+                                                 device=observation_spec.device)
         observation_spec["map_clearance"] = Bounded(0.0, 1.0, shape=(*shape, 4),
                                                     dtype=torch.float32,
                                                     device=observation_spec.device)
