@@ -367,9 +367,17 @@ def _check_teacher(cfg: Mapping) -> None:
     _require(isinstance(history, int) and not isinstance(history, bool) and history >= 0,
              "features.history", history, "an integer >= 0 (0: no action history)")
     inputs = list(_get(cfg, "features.inputs", None) or ["causal_state"])
-    allowed = ("causal_state", "causal_features", "action_history", "feature_history")
+    allowed = ("causal_state", "causal_features", "action_history", "feature_history",
+               "goal_memory", "map_clearance", "ego_map")
     for key in inputs:
         _require(key in allowed, "features.inputs", inputs, f"keys among {allowed}")
+    shield = _get(cfg, "features.shield", False)
+    _require(not shield or bool({"goal_memory", "map_clearance", "ego_map"} & set(inputs)),
+             "features.shield", shield,
+             "false unless features.inputs has an EgoMap input (goal_memory, map_clearance, "
+             "ego_map)")
+    _require(not ("ego_map" in inputs and _get(cfg, "features.image", True)), "features.image",
+             _get(cfg, "features.image", True), "false when ego_map is an input (MapQNet)")
     _require(("action_history" in inputs) == (history > 0), "features.inputs", inputs,
              f"action_history listed exactly when features.history > 0 "
              f"(features.history={history})")

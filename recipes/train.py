@@ -98,9 +98,16 @@ def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = 
         threshold=cfg.gate.threshold, eps_init=eps["eps_init"], eps_end=eps["eps_end"],
         annealing_frames=eps["annealing_num_steps"], provenance=provenance or {},
         image=bool(features.get("image", True)) if variant.features else True,
-        ego_map=OmegaConf.to_container(features.get("ego_map", {}), resolve=True)
-        if variant.features else {},
+        ego_map=_plain(features.get("ego_map", {})) if variant.features else {},
+        shield=bool(features.get("shield", False)) if variant.features else False,
     )
+
+
+def _plain(node) -> dict:
+    """A config node (or a plain dict, from a run folder written before the key existed)
+    as a dict."""
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) \
+        else dict(node or {})
 
 
 def random_frames(cfg: DictConfig, variant: ru.Variant) -> int:

@@ -29,7 +29,8 @@ def test_generalist_config_trains_across_layouts_and_selects_on_val(tmp_path):
     assert cfg.env.layout == "train" and ru.selection_scene(cfg) == "val"
     assert cfg.teacher.rounds > 0 and "heldout" in cfg.env.eval_layouts
     spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant])
-    assert spec.actor_keys == ["pixels", "policy_features"] and spec.history == 4
+    assert spec.actor_keys == ["policy_features"] and spec.history == 4 and not spec.image
+    assert spec.shield and spec.uses_ego_map and cfg.teacher.clearance > 0
 
 
 @pytest.mark.parametrize("override, needle", [
@@ -43,11 +44,19 @@ def test_generalist_config_trains_across_layouts_and_selects_on_val(tmp_path):
     ("features.frames=1", "features.frames=1"),
     ("features.inputs=[speed]", "features.inputs"),
     ("eval.select_layout=heldout", "held-out"),
+    ("features.inputs=[causal_features]", "features.shield"),
 ])
 def test_bad_teacher_and_feature_options_are_named_before_training(override, needle, tmp_path):
     cfg = _cfg([f"output_dir={tmp_path}", override, "collector.frames_per_batch=2"]
                if override == "env.num_envs=2" else [f"output_dir={tmp_path}", override])
     with pytest.raises(ValueError, match=needle.replace("[", r"\[")):
+        ru.validate_config(cfg, tmp_path)
+
+
+def test_ego_map_input_needs_the_image_off(tmp_path):
+    cfg = _cfg([f"output_dir={tmp_path}", "features.inputs=[ego_map,causal_features,action_history]",
+                "features.image=true"])
+    with pytest.raises(ValueError, match="features.image=True"):
         ru.validate_config(cfg, tmp_path)
 
 
@@ -76,7 +85,8 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
     assert calls == [] and summary["frames"] == 120
     assert summary["teacher"]["rounds"] == 1 and summary["teacher"]["frames"] > 0
     spec = json.loads((tmp_path / "policy.json").read_text())
-    assert spec["inputs"] == ["causal_features", "action_history"]
+    assert spec["inputs"] == ["causal_features", "goal_memory", "map_clearance", "action_history"]
+    assert spec["shield"] is True
     assert spec["provenance"]["teacher_frames"] == summary["teacher"]["frames"]
     assert {Path(p).name for p in summary["flight_maps"]} == {
         "flight_map_val.png", "flight_map_heldout.png", "flight_map_thesis.png"}
