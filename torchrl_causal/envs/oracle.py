@@ -97,8 +97,9 @@ class ShortestPathPlanner:
             class are one search state.
         clearance: keep this much more distance (m) from everything: the
             search runs with the drone's collision hull inflated by it (the env's
-            own collision check on a larger box), and falls back to the real hull
-            when no such plan exists. 0 (default): shortest plans, which graze
+            own collision check on a larger box, within a quarter of
+            ``max_expansions``), and falls back to the real hull when no such
+            plan is found. 0 (default): shortest plans, which graze
             obstacles; the imitation teacher uses a margin so that a student's
             small deviations do not crash.
         actions: the actions the plan may use (indices or
@@ -198,7 +199,10 @@ class ShortestPathPlanner:
                 if self.clearance > 0:
                     try:
                         with self._inflated_hull(self.clearance):
-                            return self._search(start)
+                            # a quarter of the budget: where the margin cannot be kept
+                            # (a narrow gap, a drone already inside it) the failed
+                            # search would otherwise cost a full budget at every replan
+                            return self._search(start, max(1, self.max_expansions // 4))
                     except PlanningError:
                         pass  # no plan keeps the margin: plan with the real hull
                 return self._search(start)
@@ -239,8 +243,9 @@ class ShortestPathPlanner:
             model.geom_size[geoms] = size
             model.geom_rbound[geoms] = rbound
 
-    def _search(self, start) -> list[int]:
+    def _search(self, start, budget: int | None = None) -> list[int]:
         env = self.env
+        budget = self.max_expansions if budget is None else int(budget)
         ex = env._executor
         goal = np.asarray(env._goal_point, dtype=np.float64)
         gx, gy, gz = (float(v) for v in goal)
@@ -292,10 +297,10 @@ class ShortestPathPlanner:
             if g + 1 > limit:
                 continue
             expansions += 1
-            if expansions > self.max_expansions:
+            if expansions > budget:
                 self.last_expansions = expansions
                 raise PlanningError(
-                    f"no plan within max_expansions={self.max_expansions} states (layout "
+                    f"no plan within max_expansions={budget} states (layout "
                     f"{layout.name!r}); raise max_expansions")
             for a in self.actions:
                 delta = deltas[a]
