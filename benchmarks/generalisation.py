@@ -14,7 +14,12 @@ Prints one JSON object per line:
   rate, geofence exits, mean steps, the run's frames (DQN and teacher phases) and
   training wall time;
 * ``figure="variant"``: per variant and setting over its runs (seeds): mean success,
-  its 95 % t-interval over seeds, how many seeds reach ``--target`` (0.9), mean SPL.
+  its 95 % t-interval over seeds, how many seeds reach ``--target`` (0.9), mean SPL;
+  with ``--gate-off`` also ``<variant>/gate_off``, the CBN-gated runs flown with the
+  gate passing the greedy action through;
+* ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
+  seed-by-seed difference of success against the control, its 95 % t-interval and the
+  verdict (helps / hurts / cannot be told apart).
 
 Every policy flies the same episodes (``--seed``): layouts of the held-out split of
 layout world 0, never trained on.
@@ -70,10 +75,9 @@ def scene_env(setting: str, seed: int):
     return DroneNavEnv("random", split="heldout", layout_seed=0, seed=seed)
 
 
-def run_rows(name: str, folder: Path, settings, episodes: int, seed: int) -> list[dict]:
+def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
+             gate_off: bool = False) -> list[dict]:
     import train
-
-    from torchrl_causal.training import evaluate
 
     summary_path = folder / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
@@ -86,27 +90,41 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int) -> lis
         cfg = OmegaConf.load(folder / "config.yaml")
         env = train.with_features(cfg, train.ru.VARIANTS[cfg.variant], scene_env(setting, seed))
         policy, env, cfg = train.load_policy(folder, env=env)
-        t0 = time.perf_counter()
-        n = episodes if setting == "heldout" else min(episodes, 20)
-        res = evaluate(policy, env, n, seed=seed)
-        k = int(round(res["success_rate"] * n))
-        lo, hi = wilson(k, n)
-        rows.append({
-            "bench": "generalisation", "figure": "run", "name": name, "run": str(folder),
-            "variant": str(cfg.variant), "seed": int(cfg.seed),
-            "training_scene": str(cfg.env.layout), "setting": setting, "episodes": n,
-            "success_rate": res["success_rate"], "ci95": [round(lo, 4), round(hi, 4)],
-            "spl": res.get("spl"), "crash_rate": res["collisions"] / n,
-            "out_of_bounds": res["out_of_bounds"], "mean_length": res["mean_length"],
-            "oracle_steps": res.get("oracle_steps"),
-            "frames": summary.get("frames", prov.get("frames")),
-            "teacher_frames": (summary.get("teacher") or prov.get("teacher") or {}).get("frames", 0),
-            "train_seconds": (summary.get("loop_seconds") or 0)
-            + ((summary.get("teacher") or {}).get("seconds") or 0),
-            "eval_seconds": round(time.perf_counter() - t0, 1),
-        })
+        gate = policy[-1] if hasattr(policy[-1], "eval_gate") else None
+        for off in ((False, True) if gate_off and gate is not None else (False,)):
+            if gate is not None:
+                gate.eval_gate = not off
+            rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                 episodes, seed, off))
         env.close()
     return rows
+
+
+def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, seed, gate_off):
+    from torchrl_causal.training import evaluate
+
+    t0 = time.perf_counter()
+    n = episodes if setting == "heldout" else min(episodes, 20)
+    res = evaluate(policy, env, n, seed=seed)
+    k = int(round(res["success_rate"] * n))
+    lo, hi = wilson(k, n)
+    return {
+        "bench": "generalisation", "figure": "run", "name": name, "run": str(folder),
+        # "/gate_off": the same policy evaluated with its CBN gate passing the greedy
+        # action through (CBNGate.eval_gate=False), on the same episodes
+        "variant": str(cfg.variant) + ("/gate_off" if gate_off else ""),
+        "seed": int(cfg.seed),
+        "training_scene": str(cfg.env.layout), "setting": setting, "episodes": n,
+        "success_rate": res["success_rate"], "ci95": [round(lo, 4), round(hi, 4)],
+        "spl": res.get("spl"), "crash_rate": res["collisions"] / n,
+        "out_of_bounds": res["out_of_bounds"], "mean_length": res["mean_length"],
+        "oracle_steps": res.get("oracle_steps"),
+        "frames": summary.get("frames", prov.get("frames")),
+        "teacher_frames": (summary.get("teacher") or prov.get("teacher") or {}).get("frames", 0),
+        "train_seconds": (summary.get("loop_seconds") or 0)
+        + ((summary.get("teacher") or {}).get("seconds") or 0),
+        "eval_seconds": round(time.perf_counter() - t0, 1),
+    }
 
 
 def oracle_rows(settings, episodes: int, seed: int) -> list[dict]:
@@ -149,6 +167,33 @@ def variant_rows(rows: list[dict], target: float) -> list[dict]:
     return out
 
 
+def paired_rows(rows: list[dict], control: str) -> list[dict]:
+    """Per variant and setting: the mean over seeds of (variant - ``control``) success on the
+    same episodes, its 95 % t-interval, and what it says (helps / hurts / cannot be told
+    apart: the interval excludes 0 or not)."""
+    runs = [r for r in rows if r["figure"] == "run"]
+    out = []
+    keys = sorted({(r["variant"], r["training_scene"], r["setting"]) for r in runs
+                   if r["variant"] != control})
+    for variant, trained, setting in keys:
+        ctrl = {r["seed"]: r["success_rate"] for r in runs if r["variant"] == control
+                and r["training_scene"] == trained and r["setting"] == setting}
+        diffs = [r["success_rate"] - ctrl[r["seed"]] for r in runs if r["variant"] == variant
+                 and r["training_scene"] == trained and r["setting"] == setting
+                 and r["seed"] in ctrl]
+        if not diffs:
+            continue
+        lo, hi = t_interval(diffs)
+        verdict = ("cannot be told apart" if math.isnan(lo) or lo <= 0 <= hi
+                   else "helps" if lo > 0 else "hurts")
+        out.append({"bench": "generalisation", "figure": "paired", "variant": variant,
+                    "control": control, "training_scene": trained, "setting": setting,
+                    "n_pairs": len(diffs), "diff_mean": sum(diffs) / len(diffs),
+                    "diff_ci95": None if math.isnan(lo) else [round(lo, 4), round(hi, 4)],
+                    "verdict": verdict})
+    return out
+
+
 def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", nargs="*", default=[], help="run folders (globs allowed)")
@@ -160,6 +205,11 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--target", type=float, default=0.9)
     p.add_argument("--no-oracle", action="store_true")
     p.add_argument("--out", default=None, help="also append the JSON lines to this file")
+    p.add_argument("--gate-off", action="store_true",
+                   help="also evaluate each CBN-gated run with its gate off (variant '<v>/gate_off')")
+    p.add_argument("--control", default=None,
+                   help="a variant (e.g. dqn_features): paired differences of every other "
+                        "variant against it, seed by seed")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
@@ -190,8 +240,10 @@ def main(argv=None) -> list[dict]:
     if not a.no_oracle:
         emit(oracle_rows(a.settings, a.episodes, a.seed))
     for name, folder in named:
-        emit(run_rows(name, folder, a.settings, a.episodes, a.seed))
+        emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off))
     emit(variant_rows(rows, a.target))
+    if a.control:
+        emit(paired_rows(rows, a.control))
     return rows
 
 

@@ -1,0 +1,53 @@
+"""benchmarks/generalisation.py: real evaluations of a shipped policy, gate on/off, paired rows."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import generalisation as gb  # noqa: E402
+
+
+def test_shipped_thesis_policy_rows_with_the_gate_on_and_off(tmp_path):
+    out = tmp_path / "rows.jsonl"
+    rows = gb.main(["--pretrained", "thesis", "--episodes", "2", "--settings", "thesis",
+                    "--gate-off", "--no-oracle", "--control", "cbn_v2/gate_off",
+                    "--out", str(out)])
+    runs = [r for r in rows if r["figure"] == "run"]
+    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/gate_off"]
+    assert all(r["episodes"] == 2 and r["setting"] == "thesis" for r in runs)
+    assert runs[0]["success_rate"] == 1.0  # the thesis policy flies its scene, gate on
+    paired = [r for r in rows if r["figure"] == "paired"]
+    assert len(paired) == 1 and paired[0]["n_pairs"] == 1
+    assert paired[0]["verdict"] == "cannot be told apart"  # one pair: no interval
+    assert len(out.read_text().strip().splitlines()) == len(rows)
+
+
+def _row(variant, seed, success, setting="heldout"):
+    return {"figure": "run", "variant": variant, "seed": seed, "training_scene": "train",
+            "setting": setting, "success_rate": success, "spl": success, "crash_rate": 0.0}
+
+
+def test_paired_rows_say_helps_hurts_or_cannot_be_told_apart():
+    rows = [_row("dqn_features", s, 0.5) for s in range(5)]
+    rows += [_row("cbn_v2", s, 0.7 + 0.01 * s) for s in range(5)]  # clearly higher
+    rows += [_row("cbn_defined", s, 0.3 - 0.01 * s) for s in range(5)]  # clearly lower
+    rows += [_row("cbn_p", s, 0.5 + (0.2 if s % 2 else -0.2)) for s in range(5)]
+    verdicts = {r["variant"]: r["verdict"] for r in gb.paired_rows(rows, "dqn_features")}
+    assert verdicts == {"cbn_v2": "helps", "cbn_defined": "hurts",
+                        "cbn_p": "cannot be told apart"}
+    var = {r["variant"]: r for r in gb.variant_rows(rows, 0.9)}
+    assert var["cbn_v2"]["n_seeds"] == 5 and var["cbn_v2"]["seeds_at_target"] == 0
+    assert var["cbn_v2"]["success_ci95"][0] < 0.72 < var["cbn_v2"]["success_ci95"][1]
+
+
+def test_bad_input_is_named():
+    with pytest.raises(SystemExit):
+        gb.main(["--runs", "/nonexistent/run*"])
+    with pytest.raises(SystemExit):
+        gb.main(["--episodes", "0"])
