@@ -171,6 +171,17 @@ class ThesisQNet(nn.Module):
         return q.reshape(*batch, self.n_actions)
 
 
+def _register_feature_scale(module: nn.Module, feature_scale, n_features: int, device) -> None:
+    """``module.feature_scale``: a buffer of ``n_features`` non-zero divisors, or None."""
+    if feature_scale is None:
+        module.feature_scale = None
+        return
+    feature_scale = torch.as_tensor(feature_scale, dtype=torch.float32, device=device)
+    if feature_scale.shape != (n_features,) or (feature_scale == 0).any():
+        raise ValueError(f"feature_scale must be {n_features} non-zero values")
+    module.register_buffer("feature_scale", feature_scale)
+
+
 class FeatureQNet(nn.Module):
     """A Q-network on state values alone (no image): two dense ReLU layers and a head.
 
@@ -207,13 +218,7 @@ class FeatureQNet(nn.Module):
             nn.Linear(hidden, hidden, device=device), nn.ReLU(),
             nn.Linear(hidden, n_actions, device=device),
         )
-        if feature_scale is not None:
-            feature_scale = torch.as_tensor(feature_scale, dtype=torch.float32, device=device)
-            if feature_scale.shape != (n_features,) or (feature_scale == 0).any():
-                raise ValueError(f"feature_scale must be {n_features} non-zero values")
-            self.register_buffer("feature_scale", feature_scale)
-        else:
-            self.feature_scale = None
+        _register_feature_scale(self, feature_scale, n_features, device)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """Q-values ``[..., n_actions]``."""
@@ -277,13 +282,7 @@ class MapQNet(nn.Module):
             nn.Linear(hidden, hidden, device=device), nn.ReLU(),
             nn.Linear(hidden, n_actions, device=device),
         )
-        if feature_scale is not None:
-            feature_scale = torch.as_tensor(feature_scale, dtype=torch.float32, device=device)
-            if feature_scale.shape != (n_features,) or (feature_scale == 0).any():
-                raise ValueError(f"feature_scale must be {n_features} non-zero values")
-            self.register_buffer("feature_scale", feature_scale)
-        else:
-            self.feature_scale = None
+        _register_feature_scale(self, feature_scale, n_features, device)
 
     def forward(self, ego_map: torch.Tensor, features: torch.Tensor | None = None
                 ) -> torch.Tensor:
