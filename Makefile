@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,15 @@ generalist: venv
 THESIS_RUN ?= outputs/make_train
 ship-thesis: venv
 	$(PY) recipes/ship_policy.py $(THESIS_RUN) thesis --command "make train"
+
+# make demo: watch the shipped policies fly (recipes/watch.py): flight.mp4 (onboard camera +
+# chase view), flight_maps.png and episodes.jsonl, thesis on the thesis scene and generalist
+# on held-out layouts, in outputs/demo/<policy>
+demo: venv
+	$(PY) recipes/watch.py --policy thesis --layout thesis --episodes 2 \
+	    --out outputs/demo/thesis --overwrite
+	$(PY) recipes/watch.py --policy generalist --layout heldout --episodes 3 \
+	    --out outputs/demo/generalist --overwrite
 
 test: venv
 	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 --doctest-modules torchrl_causal tests

@@ -11,6 +11,9 @@
   (:mod:`torchrl_causal.training.imitation`).
 * :func:`plot_flight_map` / :func:`plot_flight_maps` -- evaluated episodes drawn
   from above (:mod:`torchrl_causal.training.flightmap`).
+* :func:`record_episodes` -- evaluated episodes as one MP4: the onboard camera
+  beside a MuJoCo chase view, with the action, the gate's decision and the
+  outcome drawn on it (:mod:`torchrl_causal.training.video`).
 * :class:`EpisodeCSV`, :func:`atomic_save`, :func:`rng_state`,
   :func:`set_rng_state` -- resumable run records (:mod:`torchrl_causal.training.records`).
 
@@ -31,6 +34,7 @@ from torchrl_causal.training.flightmap import plot_flight_map, plot_flight_maps
 from torchrl_causal.training.imitation import ImitationConfig, OracleImitation, margin_loss
 from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
+from torchrl_causal.training.video import OUTCOME_LABELS, record_episodes
 
 __all__ = [
     "DQNLoop",
@@ -42,6 +46,8 @@ __all__ = [
     "OracleImitation",
     "plot_flight_map",
     "plot_flight_maps",
+    "record_episodes",
+    "OUTCOME_LABELS",
     "ImitationConfig",
     "margin_loss",
     "env_max_steps",
