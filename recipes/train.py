@@ -381,6 +381,8 @@ def train(cfg: DictConfig) -> dict:
             "last_round": teacher[-1]}
     summary.update(write_outputs(cfg, variant, paths, hook))
     summary["flight_maps"] = [str(p) for p in draw_flight_maps(loop, paths["plots"])]
+    if cfg.outputs.get("videos", 0):
+        summary["videos"] = record_videos(cfg, variant, loop.policy, out / "videos")
     spec = policy_spec(cfg, variant, provenance={
         "run": str(out), "variant": cfg.variant, "seed": cfg.seed,
         "frames": summary["frames"],
@@ -431,6 +433,24 @@ def draw_flight_maps(loop, folder: Path, max_maps: int = 12) -> list[Path]:
         if eps:
             out.append(plot_flight_maps(eps, folder / f"flight_map_{scene}.png",
                                         suptitle=f"final greedy episodes: {scene}"))
+    return out
+
+
+def record_videos(cfg: DictConfig, variant: ru.Variant, policy, folder: Path) -> dict:
+    """``videos/<scene>.mp4``: greedy episodes of the final policy, onboard camera beside a
+    chase view (:func:`torchrl_causal.training.video.record_episodes`) -- one on the thesis
+    scene and ``outputs.videos`` on held-out layouts. Only evaluation episodes: the
+    training flights are never recorded."""
+    from torchrl_causal.training.video import record_episodes
+
+    out = {}
+    for scene, episodes in (("thesis", 1), ("heldout", int(cfg.outputs.videos))):
+        env = build_env(cfg, variant, scene, cfg.device)
+        res = record_episodes(policy, env, episodes, seed=cfg.seed * 7919 + 17,
+                              path=folder / f"{scene}.mp4", spl=False)
+        out[scene] = {"video": str(res["video"]), "episodes": episodes,
+                      "success_rate": res["success_rate"]}
+        env.close()
     return out
 
 

@@ -67,7 +67,8 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
             "loss.learning_starts=60", "loss.target_update_interval=10",
             "eval.interval_frames=60", "eval.episodes=1", "eval.final_episodes=2",
             "env.image_size=48", "env.max_steps=40", "progress=false", "threads=1",
-            "logger.backend=none", "outputs.draw_cbns=false", "checkpoint.interval_frames=60"]
+            "logger.backend=none", "outputs.draw_cbns=false", "checkpoint.interval_frames=60",
+            "outputs.videos=1"]
     # first session: the teacher phase, then stopped (as if killed) at the first checkpoint
     first = train.train(_cfg(args + ["checkpoint.stop_after_frames=60"]))
     assert first["stopped_early"]
@@ -91,6 +92,14 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
     assert {Path(p).name for p in summary["flight_maps"]} == {
         "flight_map_val.png", "flight_map_heldout.png", "flight_map_thesis.png"}
     assert set(summary["final_eval"]) == {"val", "heldout", "thesis"}
+    # videos of evaluation episodes only: one thesis-scene, one held-out episode
+    import av
+
+    for scene in ("thesis", "heldout"):
+        with av.open(str(tmp_path / "videos" / f"{scene}.mp4")) as video:
+            stream = video.streams.video[0]
+            assert stream.codec_context.name == "h264" and stream.width >= 320 + 48
+            assert sum(1 for _ in video.decode(stream)) >= 2
     assert "spl" in summary["final_eval"]["heldout"]
     # the run folder is a policy folder: the pretrained loader rebuilds it
     from torchrl_causal.envs import DroneNavEnv
