@@ -81,9 +81,9 @@ def test_policy_spec_round_trip_and_bad_input(tmp_path):
 
 def test_shipped_generalist_flies_held_out_layouts_better_than_random_flight():
     """The shipped generalist on held-out random layouts it never saw. Its figures over 100
-    layouts are in provenance.json (0.26 success, SPL 0.24: the 0.9 target of its issue is
-    not reached); here 12 seeded episodes against random flight (measured: 5 of 12 vs 0 of
-    12 reached, progress reward +2.8 vs -10.9 per episode)."""
+    layouts are in provenance.json (its run's final evaluation: 0.89 success, SPL 0.74); here
+    12 seeded episodes against random flight (measured: 10 of 12 vs 0 of 12 reached, no
+    crash vs 4, progress reward +10.9 vs -10.9 per episode)."""
     assert "generalist" in available()
     policy, env = load_policy("generalist")
     assert env.base_env.split == "heldout"
@@ -91,8 +91,9 @@ def test_shipped_generalist_flies_held_out_layouts_better_than_random_flight():
     torch.manual_seed(0)
     rand = evaluate(lambda td: td.set("action", env.action_spec.rand()), env, episodes=12,
                     seed=2024, spl=False)
-    assert res["success_rate"] >= rand["success_rate"] + 0.25, (res, rand)
-    assert res["mean_reward"] >= rand["mean_reward"] + 5.0, (res, rand)
+    assert res["success_rate"] >= rand["success_rate"] + 0.6, (res, rand)
+    assert res["mean_reward"] >= rand["mean_reward"] + 15.0, (res, rand)
+    assert res["collisions"] <= 1, res  # the shield: no move the map says will not fit
     prov = provenance("generalist")
     assert prov["training_scene"] == "train" and prov["teacher"]["frames"] > 0
 
