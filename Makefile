@@ -51,7 +51,7 @@ ship-thesis: venv
 demo: venv
 	$(PY) recipes/watch.py --policy thesis --layout thesis --episodes 2 \
 	    --out outputs/demo/thesis --overwrite
-	$(PY) recipes/watch.py --policy generalist --layout heldout --episodes 3 \
+	$(PY) recipes/watch.py --policy generalist --layout heldout --episodes 4 \
 	    --out outputs/demo/generalist --overwrite
 
 test: venv
