@@ -180,13 +180,20 @@ def test_map_clearance_is_a_conservative_corridor_check():
 
 
 def test_shielded_policy_never_takes_a_masked_move():
+    from tensordict.nn import TensorDictSequential
+
+    from torchrl_causal.modules import FeatureQNet
+
+    torch.manual_seed(0)
     spec = PolicySpec(inputs=["goal_memory", "map_clearance"], image=False, shield=True,
-                      explorer="egreedy", eps_init=1.0, eps_end=1.0)  # uniformly random acting
+                      explorer="egreedy", eps_init=0.3, eps_end=0.3)
     base = DroneNavEnv(seed=0)  # the pillar ahead: forward is masked after three steps
     env = with_policy_features(spec, base, seed=0)
     actor, explorer = build_policy(spec, env.action_spec_unbatched, seed=0)
-    from tensordict.nn import TensorDictSequential
-
+    net = next(m for m in actor.modules() if isinstance(m, FeatureQNet))
+    with torch.no_grad():  # a Q-network that always wants to fly forward
+        net.net[-1].weight.zero_()
+        net.net[-1].bias.copy_(torch.arange(8, 0, -1, dtype=torch.float32))
     policy = TensorDictSequential(actor, explorer)
     td = env.rollout(60, policy, break_when_any_done=False)
     masks, actions = td["action_mask"], td["action"]
