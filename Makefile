@@ -33,7 +33,8 @@ train: venv
 # make generalist: the policy that flies layouts it has never seen (recipes/config/generalist.yaml:
 # oracle teacher phase + DQN phase across random training-split layouts, selected on a validation
 # set of training-split layouts), then shipped as torchrl_causal.pretrained "generalist".
-GENERALIST_ARGS ?= seed=0
+# the shipped generalist is seed 1 of 5 (chosen on its validation success, docs/results.rst)
+GENERALIST_ARGS ?= seed=1
 generalist: venv
 	$(PY) recipes/train.py --config-name generalist output_dir=outputs/generalist threads=1 \
 	    progress=false $(GENERALIST_ARGS)
