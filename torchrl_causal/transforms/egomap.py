@@ -188,10 +188,10 @@ class EgoMap(Transform):
         valid = (up.abs() <= self.band) & (depth > 0) & (depth < self.max_range)
         z = torch.where(valid, depth, torch.full_like(depth, float("inf"))).amin(1)  # [n, w]
         tan_left = (w / 2.0 - u) / f  # [w]
-        return z, tan_left, f
+        return z, tan_left
 
     def _write(self, st, idx, depth):
-        z, tan_left, _ = self._scan(depth)
+        z, tan_left = self._scan(depth)
         pose = st["pose"][idx]
         n, w = z.shape
         c, s = pose[:, 2].cos()[:, None, None], pose[:, 2].sin()[:, None, None]
@@ -324,7 +324,7 @@ class EgoMap(Transform):
         depth = depth.reshape(-1, *depth.shape[len(batch):])[idx].float()
         hw = tuple(depth.shape[-2:])
 
-        def flat(key, default=0.0):
+        def flat(key):
             val = td.get(key, None)
             if val is None:
                 return None
