@@ -25,6 +25,7 @@ import json
 import os
 import random
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -445,11 +446,13 @@ def record_videos(cfg: DictConfig, variant: ru.Variant, policy, folder: Path) ->
 
     out = {}
     for scene, episodes in (("thesis", 1), ("heldout", int(cfg.outputs.videos))):
+        t0 = time.perf_counter()
         env = build_env(cfg, variant, scene, cfg.device)
         res = record_episodes(policy, env, episodes, seed=cfg.seed * 7919 + 17,
                               path=folder / f"{scene}.mp4", spl=False)
         out[scene] = {"video": str(res["video"]), "episodes": episodes,
-                      "success_rate": res["success_rate"]}
+                      "success_rate": res["success_rate"],
+                      "seconds": round(time.perf_counter() - t0, 2)}
         env.close()
     return out
 

@@ -358,3 +358,36 @@ def test_timings_count_reset_renders_and_clear_on_reset():
         assert env.timings() == {"render_ms": 0.0, "physics_ms": 0.0, "steps": 0}
     finally:
         env.close()
+
+
+def test_noise_is_seeded_per_episode_not_by_what_earlier_episodes_did():
+    """Issue 'Tello parity', seeded noise: episode i's move/turn/barometer noise
+    draws from default_rng([seed, i]), so a second episode flies the same way
+    whatever the first one did (and the random layouts stay the same)."""
+    import numpy as np
+    from tensordict import TensorDict
+
+    def second_episode(first_actions):
+        env = DroneNavEnv("random", split="train", image_size=32, seed=11,
+                          position_noise_std=0.05, yaw_noise_std_deg=3.0,
+                          altitude_noise_std=0.05)
+        env.reset()
+        for a in first_actions:
+            td = env.step(TensorDict({"action": torch.tensor(a)}, []))
+            if bool(td["next", "done"]):
+                break
+        env.reset()
+        assert env.episode_noise_seed == (11, 1)
+        out = []
+        for a in (0, 6, 2, 4, 7, 0):
+            td = env.step(TensorDict({"action": torch.tensor(a)}, []))
+            out.append((env.layout.name, env._executor.pose(), float(td["next", "altitude"])))
+        return out
+
+    a = second_episode([0, 6, 6])
+    b = second_episode([7, 2, 4, 4, 6, 1, 0, 7, 7, 3])
+    assert a == b
+    c = second_episode([])
+    assert c == a
+    poses = np.array([p for _, p, _ in a])
+    assert np.all(np.isfinite(poses))

@@ -164,3 +164,41 @@ def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path):
     assert (tmp_path / "one.png").stat().st_size > 10_000 and out.stat().st_size > 10_000
     with pytest.raises(ValueError, match="layout"):
         plot_flight_map([{"success": True}])
+
+
+def test_broadphase_free_poses_never_collide_under_the_swept_test():
+    """The planner skips the swept collision test where its broadphase says no
+    geom is within one move; at such poses the env's own sweep must agree, and
+    near obstacles the broadphase must say 'not free'."""
+    import numpy as np
+
+    env = DroneNavEnv("random", split="heldout", layout_seed=5, image_size=32, seed=2)
+    env.reset()
+    planner = ShortestPathPlanner(env)
+    rng = np.random.default_rng(0)
+    n_free = n_near = n_blocked = 0
+    with planner.scratch():
+        free = planner._broadphase()
+        assert free is not None
+        ex, layout = env._executor, env.layout
+        goal = np.asarray(env._goal_point)
+        for _ in range(400):
+            pose = (float(rng.uniform(-1, 7)), float(rng.uniform(-3, 3)),
+                    float(rng.uniform(0.3, 2.0)), float(rng.uniform(-math.pi, math.pi)))
+            ex.set_pose(*pose)
+            if ex.in_collision():
+                assert not free(pose)  # a pose in collision is never "free"
+                n_near += 1
+                continue
+            if not free(pose):
+                n_blocked += 1
+                continue
+            n_free += 1
+            for delta in env._deltas:
+                ex.set_pose(*pose)
+                assert not ex.execute(delta, rng, goal, env.reach_radius).crashed, (pose, delta)
+        for ob in layout.obstacles:  # inside every obstacle: in collision, never free
+            pose = (float(ob.center[0]), float(ob.center[1]), float(ob.center[2]), 0.0)
+            ex.set_pose(*pose)
+            assert ex.in_collision() and not free(pose)
+    assert n_free > 50 and n_blocked > 10

@@ -127,7 +127,12 @@ class DroneNavEnv(EnvBase):
         yaw_noise_std_deg: kinematic mode: std of the executed turn's noise (deg).
         action_duration: physics mode: simulated seconds per action.
         physics_timestep: physics time step (s).
-        seed: initial seed (None: random).
+        seed: initial seed (None: random). It draws the random layouts; the noise
+            (barometer, moves, turns) of episode ``i`` after a seed draws from its
+            own generator, ``numpy.random.default_rng([seed, i])``
+            (:attr:`episode_noise_seed`), so an episode's noise does not depend
+            on what earlier episodes did: two runs of one setting and seed fly
+            the same layouts under the same noise.
         device: device of the output tensors.
 
     Example:
@@ -275,6 +280,7 @@ class DroneNavEnv(EnvBase):
         self._steps = 0
         self._timing = {"render_s": 0.0, "physics_s": 0.0, "steps": 0}
         self._rng = np.random.default_rng(seed)
+        self._seed_noise(seed)
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self):
@@ -384,7 +390,7 @@ class DroneNavEnv(EnvBase):
         bearing = math.degrees(math.atan2(-rel[0], -rel[2]))
         alt = float(d.qpos[self.ids.qpos_adr + 2])
         if self.altitude_noise_std > 0:
-            alt += float(self._rng.normal(0.0, self.altitude_noise_std))
+            alt += float(self._noise_rng.normal(0.0, self.altitude_noise_std))
 
         pixels = torch.from_numpy(rgb.copy())
         depth_t = torch.from_numpy(depth.copy())
@@ -429,6 +435,9 @@ class DroneNavEnv(EnvBase):
     # ------------------------------------------------------------- EnvBase
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         self._load(self._select_layout())
+        self.episode_noise_seed = (self._noise_seed, self._episode)
+        self._noise_rng = np.random.default_rng(list(self.episode_noise_seed))
+        self._episode += 1
         x, y, z = self.layout.start_pos
         self._executor.reset(x, y, z, math.radians(self.layout.start_yaw_deg))
         self._steps = 0
@@ -444,7 +453,7 @@ class DroneNavEnv(EnvBase):
         d_before = self._distance_to_goal_point(self._executor.pose())
         t0 = time.perf_counter()
         out = self._executor.execute(
-            self._deltas[action], self._rng, self._goal_point, self.reach_radius
+            self._deltas[action], self._noise_rng, self._goal_point, self.reach_radius
         )
         self._timing["physics_s"] += time.perf_counter() - t0
         self._timing["steps"] += 1
@@ -482,6 +491,15 @@ class DroneNavEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng = np.random.default_rng(seed)
+        self._seed_noise(seed)
+
+    def _seed_noise(self, seed: int | None) -> None:
+        """Episode ``i`` from now draws its noise from ``default_rng([base, i])``."""
+        self._noise_seed = int(seed) if seed is not None else int(
+            np.random.SeedSequence().generate_state(1)[0])
+        self._episode = 0
+        self.episode_noise_seed = (self._noise_seed, 0)
+        self._noise_rng = np.random.default_rng(list(self.episode_noise_seed))
 
     # ------------------------------------------------------------- helpers
     def timings(self, reset: bool = False) -> dict:

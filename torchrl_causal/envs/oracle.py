@@ -243,6 +243,67 @@ class ShortestPathPlanner:
             model.geom_size[geoms] = size
             model.geom_rbound[geoms] = rbound
 
+    def _broadphase(self):
+        """A test ``free(pose) -> bool``: no geom the drone can collide with comes
+        within one move of the drone's bounding sphere at ``pose``, so every
+        move from it is collision-free without the swept test.
+
+        Built from MuJoCo's own bounding volumes at the current kinematics: the
+        drone's bounding sphere about its body origin, every other geom's
+        oriented bounding box (``geom_aabb`` in the geom's frame), planes by
+        their normal. ``None`` when some collidable geom moves (then every move
+        is swept).
+        """
+        import mujoco
+
+        env = self.env
+        model, data = env.model, env.data
+        drone_all = set(env.ids.drone_geoms)
+        drone = [g for g in drone_all if model.geom_contype[g] or model.geom_conaffinity[g]]
+        if not drone:
+            return None
+        mujoco.mj_kinematics(model, data)
+        body = model.geom_bodyid[drone[0]]
+        origin = data.xpos[body].copy()
+        radius = max(float(np.linalg.norm(data.geom_xpos[g] - origin) + model.geom_rbound[g])
+                     for g in drone)
+        centres, rots, halves, planes = [], [], [], []
+        for g in range(model.ngeom):
+            if g in drone_all:
+                continue
+            if not any((model.geom_contype[g] & model.geom_conaffinity[d])
+                       or (model.geom_conaffinity[g] & model.geom_contype[d]) for d in drone):
+                continue
+            b = model.geom_bodyid[g]
+            if b != 0 and (model.body_jntnum[b] > 0 or model.body_mocapid[b] >= 0):
+                return None  # a moving obstacle: no static broadphase
+            rot = data.geom_xmat[g].reshape(3, 3).copy()
+            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE:
+                planes.append((data.geom_xpos[g].copy(), rot[:, 2].copy()))
+                continue
+            aabb = model.geom_aabb[g]  # centre (3) and half sizes (3), geom frame
+            centres.append(data.geom_xpos[g] + rot @ aabb[:3])
+            rots.append(rot)
+            halves.append(aabb[3:].copy())
+        reach = radius + env.step_size + 1e-3  # the farthest a move takes any point of the hull
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        rots = np.asarray(rots, dtype=np.float64).reshape(-1, 3, 3)
+        halves = np.asarray(halves, dtype=np.float64).reshape(-1, 3)
+
+        def free(pose) -> bool:
+            p = np.array(pose[:3], dtype=np.float64)
+            for point, normal in planes:
+                if float(np.dot(p - point, normal)) <= reach:
+                    return False
+            if len(centres):
+                local = np.einsum("nji,nj->ni", rots, p - centres)  # R^T (p - c)
+                outside = np.maximum(np.abs(local) - halves, 0.0)
+                if bool(((outside ** 2).sum(axis=1) <= reach * reach).any()):
+                    return False
+            return True
+
+        return free
+
     def _search(self, start, budget: int | None = None) -> list[int]:
         env = self.env
         budget = self.max_expansions if budget is None else int(budget)
@@ -283,6 +344,7 @@ class ShortestPathPlanner:
         if h(start) == 0 and (start[0] - gx) ** 2 + (start[1] - gy) ** 2 + (start[2] - gz) ** 2 \
                 <= r * r:
             return []
+        free = self._broadphase()
         nodes = [(start, -1, -1)]  # (pose, parent index, action)
         best_g = {key(start): 0}
         w = self.weight
@@ -302,10 +364,11 @@ class ShortestPathPlanner:
                 raise PlanningError(
                     f"no plan within max_expansions={budget} states (layout "
                     f"{layout.name!r}); raise max_expansions")
+            sweep = free is None or not free(pose)  # far from everything: no swept test
             for a in self.actions:
                 delta = deltas[a]
                 ex.set_pose(*pose)
-                out = ex.execute(delta, rng, goal, r)
+                out = ex.execute(delta, rng, goal, r, check_collisions=sweep)
                 if out.crashed:
                     continue
                 nxt = ex.pose()

@@ -899,6 +899,10 @@ class TelloEmulator:
             else:
                 delta = (0.0, 0.0, 0.0, -value if cmd == "cw" else value)
                 duration = value / self.turn_rate
+            # the move's noise, drawn once per command from the episode's own generator
+            # (DroneNavEnv.episode_noise_seed): the same commands fly the same way
+            # however the simulation thread's ticks split the motion
+            delta = self.env._executor.noisy_delta(delta, self.env._noise_rng)
             self._start_motion(_Motion("move", delta, duration, addr), now)
             return
         if cmd in ("stop", "keepalive"):
@@ -991,7 +995,7 @@ class TelloEmulator:
                 step = frac - m.done_frac
                 if step > 0:
                     delta = tuple(v * step for v in m.delta)
-                    out = self.env._executor.execute(delta, self.env._rng, self.env._goal_point,
+                    out = self.env._executor.execute(delta, None, self.env._goal_point,
                                                      self.env.reach_radius)
                     self._sync_pose()
                     if out.reached:
@@ -1012,7 +1016,7 @@ class TelloEmulator:
             lr, fb, ud, yw = self._rc
             s = self.rc_speed * dt * self.time_scale / 100.0
             delta = (fb * s, -lr * s, ud * s, -yw * self.rc_yaw_rate * dt * self.time_scale / 100.0)
-            out = self.env._executor.execute(delta, self.env._rng, self.env._goal_point,
+            out = self.env._executor.execute(delta, self.env._noise_rng, self.env._goal_point,
                                              self.env.reach_radius)
             self._sync_pose()
             self.reached = self.reached or out.reached
