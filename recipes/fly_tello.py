@@ -80,8 +80,16 @@ def parse_args(argv=None):
     p.add_argument("--settle", type=float, default=None,
                    help="s to wait after a move before observing (default 0 emulator, 0.5 Tello)")
     p.add_argument("--reach-distance", type=float, default=None,
-                   help="TelloEnv's reach rule: goal in sight within this measured distance (m); "
-                        "(default: TelloEnv's 0.55, for every --perception; see docs/tello.rst)")
+                   help="TelloEnv's ReachRule: goal in sight within this measured distance (m) "
+                        "of the camera (default: ReachRule's; see docs/tello.rst)")
+    p.add_argument("--reach-height", type=float, default=None,
+                   help="ReachRule: also |height sensor - goal height| <= this (m); the goal "
+                        "height is the emulated layout's, or --goal-height on a real drone")
+    p.add_argument("--goal-height", type=float, default=None,
+                   help="real drone: the goal point's height above the floor (m), the board "
+                        "centre's height (needed by --reach-height)")
+    p.add_argument("--reach-full-width", action="store_true",
+                   help="ReachRule: the goal's box must span the image's width")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
     a = p.parse_args(argv)
@@ -103,10 +111,34 @@ def parse_args(argv=None):
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
     if a.perception not in ("rgb", "sim") and ":" not in a.perception:
         p.error(f"--perception must be rgb, sim or module:factory, got {a.perception!r}")
+    if a.reach_height is not None and a.host is not None and a.goal_height is None:
+        p.error("--reach-height on a real drone needs --goal-height (the board centre's "
+                "height above the floor, m)")
+    try:
+        a.reach_rule = reach_rule(a)
+    except ValueError as e:
+        p.error(f"--reach-* options: {e}")
     if a.host is not None and a.perception == "sim":
         p.error("--perception sim exists only in the emulator: a real drone needs RGB-only "
                 "perception (--perception rgb)")
     return a
+
+
+def reach_rule(args, goal_height=None):
+    """The :class:`~torchrl_causal.envs.ReachRule` of the ``--reach-*`` options
+    (``goal_height``: the emulated layout's, for ``--reach-height``)."""
+    from torchrl_causal.envs import ReachRule
+
+    kw = {}
+    if args.reach_distance is not None:
+        kw["max_distance"] = args.reach_distance
+    if args.reach_height is not None:
+        kw["max_height_offset"] = args.reach_height
+        kw["goal_height"] = args.goal_height if args.goal_height is not None else (
+            goal_height if goal_height is not None else 1.0)
+    if args.reach_full_width:
+        kw["full_width"] = True
+    return ReachRule(**kw)
 
 
 def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
@@ -141,9 +173,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
     import train as train_recipe
     from torchrl_causal.envs import TelloEnv
 
-    # One reach distance for every perception: with RGB, 0.55 and 0.45 reached the goal
-    # sphere equally often on the noisy emulator, 0.45 crashed twice as often (docs/tello.rst)
-    kw = {} if args.reach_distance is None else {"reach_distance": args.reach_distance}
+    kw = {"reach_rule": args.reach_rule}
     if layout is not None:  # the emulated scene's flight volume, in the take-off frame
         x0, y0, _ = layout.start_pos
         xa, ya, xb, yb = layout.arena
@@ -256,7 +286,7 @@ def main(argv=None) -> dict:
     Path(args.out).mkdir(parents=True, exist_ok=True)
     summary: dict = {"run": str(run), "target": args.host or "emulator",
                      "episodes": args.episodes, "perception": args.perception,
-                     "noise": bool(args.noise)}
+                     "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception)
@@ -288,8 +318,14 @@ def main(argv=None) -> dict:
                            battery_drain_per_min=0.0) as emu:
             tello = emu.client()
             detector, depth = perception_models(args.perception, emu)
-            base, tenv = make_tello_env(args, cfg, tello, detector, depth,
-                                        lambda _env: emu.reset_world(), layout=emu.env.layout)
+
+            def new_episode(env):
+                emu.reset_world()
+                if args.reach_height is not None:  # this layout's goal height
+                    env.reach_rule = reach_rule(args, float(emu.env.layout.goal_point()[2]))
+
+            base, tenv = make_tello_env(args, cfg, tello, detector, depth, new_episode,
+                                        layout=emu.env.layout)
             policy, _, _ = train_recipe.load_policy(run, env=tenv)
             t0 = time.perf_counter()
             try:
@@ -298,6 +334,11 @@ def main(argv=None) -> dict:
                 base.close()
             summary["wall_s"] = round(time.perf_counter() - t0, 1)
         summary["success_sim"] = summarize(rows, "success_sim")
+        # the arrival rule against the simulator's verdict, episode by episode
+        summary["agreement"] = round(float(np.mean([r["success"] == r["success_sim"]
+                                                    for r in rows])), 4)
+        summary["false_reached"] = sum(1 for r in rows if r["success"] and not r["success_sim"])
+        summary["missed_reach"] = sum(1 for r in rows if r["success_sim"] and not r["success"])
         closest = [r["closest_sim_m"] for r in rows if r["closest_sim_m"] != ""]
         summary["closest_sim_m_median"] = float(np.median(closest)) if closest else None
     summary["success"] = summarize(rows)

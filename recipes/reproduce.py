@@ -16,11 +16,13 @@ hydra multirun of ``recipes/train.py`` writing its own run folder under ``--root
 The runs go through a hydra launcher (``--launcher``): ``joblib`` (default;
 ``--jobs`` local processes), ``submitit_local`` (submitit's local executor),
 ``submitit_slurm`` (a SLURM job array; partition, time limit, GPUs... as
-``hydra.launcher.*`` overrides after ``--``), ``ray`` (``hydra-ray-launcher``;
-a local Ray instance, or a cluster with ``hydra.launcher.ray.init.address=...``)
-or ``basic`` (one after the other, in one process). The joblib and submitit
-plugins are the ``cluster`` extra (``pip install -e '.[cluster]'``), Ray's the
-``ray`` extra. Before launching, a short warm-up run (``--warmup-frames``
+``hydra.launcher.*`` overrides after ``--``), ``ray`` (every run one Ray task:
+a local Ray instance with ``--jobs`` CPUs, or a running cluster with
+``--ray-address auto``; ``--cpus-per-run``, ``--gpus-per-run``) or ``basic``
+(one after the other, in one process). The joblib and submitit plugins are the
+``cluster`` extra (``pip install -e '.[cluster]'``), Ray the ``ray`` extra (Ray
+itself: hydra-ray-launcher pins ``cloudpickle<3``, which conflicts with
+joblib >= 1.6). Before launching, a short warm-up run (``--warmup-frames``
 frames of ``cbn_v2`` with the grid's settings) measures the training speed and
 the estimated wall time of the grid is printed (``--no-estimate`` skips it,
 ``--estimate-only`` stops after it).
@@ -42,7 +44,8 @@ Example::
     python recipes/reproduce.py --mode full --launcher submitit_slurm --jobs 40 -- \\
         hydra.launcher.partition=gpu hydra.launcher.timeout_min=720 \\
         hydra.launcher.gpus_per_node=1 hydra.launcher.cpus_per_task=4 device=cuda
-    python recipes/reproduce.py --mode full --launcher ray
+    python recipes/reproduce.py --mode full --launcher ray --jobs 16
+    python recipes/reproduce.py --mode full --launcher ray --ray-address auto   # a cluster
 """
 
 from __future__ import annotations
@@ -113,7 +116,9 @@ LAUNCHERS = {
                                "hydra-submitit-launcher", "cluster"),
     "submitit_slurm": Launcher("submitit_slurm", "hydra_plugins.hydra_submitit_launcher",
                                "hydra-submitit-launcher", "cluster"),
-    "ray": Launcher("ray", "hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher", "ray"),
+    # Ray without hydra-ray-launcher: that plugin pins cloudpickle<3, which conflicts with
+    # joblib >= 1.6 in one environment; every run is a Ray task instead (run_with_ray)
+    "ray": Launcher("ray", "ray", "ray", "ray"),
     "basic": Launcher("basic", None, None, None),
 }
 #: submitit's local executor kills a job after ``timeout_min`` (60 by default): a week here.
@@ -176,8 +181,8 @@ def check_launcher(name: str) -> Launcher:
     launcher = LAUNCHERS[name]
     if launcher.module is not None and importlib.util.find_spec(launcher.module) is None:
         raise ValueError(
-            f"Invalid option --launcher={name}: the {launcher.package} plugin is not "
-            f"installed (pip install {launcher.package}, or pip install -e "
+            f"Invalid option --launcher={name}: {launcher.package} is not installed "
+            f"(pip install {launcher.package}, or pip install -e "
             f"'.[{launcher.extra}]')")
     return launcher
 
@@ -254,9 +259,69 @@ def job_env() -> dict:
     return env
 
 
+def run_with_ray(pending: list[Run], overrides: list[str], jobs: int | None = None,
+                 address: str | None = None, cpus_per_run: float = 1.0,
+                 gpus_per_run: float = 0.0, dry_run: bool = False) -> None:
+    """Every pending run as one Ray task (``recipes/train.py`` in a subprocess of a Ray
+    worker, its output in ``<run folder>.ray.log`` beside the run folder).
+
+    ``address=None`` starts a local Ray instance with ``jobs`` CPUs (default: all
+    cores); ``"auto"`` or ``"HOST:6379"`` joins a running cluster (``ray start --head``
+    and ``ray start --address=...`` on the workers), whose nodes must see this
+    repository and ``--root`` at the same paths (a shared file system, as for SLURM).
+    Ray runs ``floor(CPUs / cpus_per_run)`` tasks at a time per node.
+    """
+    runs = [(r, [sys.executable, str(TRAIN),
+                 *r.argv(merge_overrides(overrides, ["checkpoint.resume=auto"]))])
+            for r in pending]
+    for r, cmd in runs:
+        print(f"Ray task: {shlex.join(cmd)}", flush=True)
+    if dry_run or not runs:
+        return
+    import ray
+
+    env = job_env()
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address is None:
+            ray.init(num_cpus=jobs or os.cpu_count() or 1, include_dashboard=False,
+                     log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+    print(f"Ray: {len(runs)} runs on {ray.cluster_resources().get('CPU', 0):g} CPUs, "
+          f"{len(ray.nodes())} node(s)", flush=True)
+
+    @ray.remote(num_cpus=cpus_per_run, num_gpus=gpus_per_run, max_retries=0)
+    def job(cmd: list[str], env: dict, log: str) -> tuple[int, str]:
+        import socket
+        import subprocess as sp
+
+        Path(log).parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "w") as f:
+            code = sp.run(cmd, env=env, stdout=f, stderr=sp.STDOUT, check=False).returncode
+        return code, socket.gethostname()
+
+    try:
+        refs = {job.remote(cmd, env, str(r.run_dir.parent / f"{r.run_dir.name}.ray.log")): r
+                for r, cmd in runs}
+        left = list(refs)
+        while left:
+            done, left = ray.wait(left, num_returns=1)
+            code, host = ray.get(done[0])
+            r = refs[done[0]]
+            state = "finished" if code == 0 else f"failed (exit {code}; see its .ray.log)"
+            print(f"[{len(refs) - len(left)}/{len(refs)}] {state} on {host}: {r.run_dir}",
+                  flush=True)
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
 def run_all(plan: list[Run], overrides: list[str], launcher: str = "joblib",
-            jobs: int | None = 1, dry_run: bool = False) -> list[Run]:
-    """Launches the unfinished runs of ``plan`` (one multirun per grid of :func:`sweeps`).
+            jobs: int | None = 1, dry_run: bool = False, ray_options: dict | None = None
+            ) -> list[Run]:
+    """Launches the unfinished runs of ``plan`` (one multirun per grid of :func:`sweeps`;
+    with ``launcher="ray"`` one Ray task per run, :func:`run_with_ray`).
 
     Returns:
         The runs still without a ``summary.json`` afterwards (empty when all finished).
@@ -269,6 +334,11 @@ def run_all(plan: list[Run], overrides: list[str], launcher: str = "joblib",
             state = "resumes" if (r.run_dir / ru.RUN_LAYOUT["checkpoint"]).exists() else "starts"
             print(f"[{i}/{len(plan)}] {state}: {r.run_dir}")
             pending.append(r)
+    if launcher == "ray":
+        run_with_ray(pending, overrides, jobs, dry_run=dry_run, **(ray_options or {}))
+        if dry_run:
+            return pending
+        return [r for r in pending if not (r.run_dir / "summary.json").exists()]
     root = plan[0].run_dir.parents[2] if plan else None
     launch = launcher_overrides(launcher, jobs)
     env = job_env()
@@ -486,7 +556,15 @@ def main(argv=None) -> dict:
     p.add_argument("--jobs", type=int, default=None,
                    help="runs at a time: local processes (joblib, submitit_local; default 1) "
                         "or the SLURM array's parallelism (submitit_slurm; default the "
-                        "plugin's 256); Ray schedules by its own CPUs")
+                        "plugin's 256), or the CPUs of the local Ray instance (ray; default "
+                        "all cores)")
+    p.add_argument("--ray-address", default=None,
+                   help="--launcher ray: join this Ray cluster ('auto' or HOST:6379) instead "
+                        "of starting a local instance")
+    p.add_argument("--cpus-per-run", type=float, default=1.0,
+                   help="--launcher ray: CPUs Ray reserves per run (default 1)")
+    p.add_argument("--gpus-per-run", type=float, default=0.0,
+                   help="--launcher ray: GPUs Ray reserves per run (default 0; add device=cuda)")
     p.add_argument("--warmup-frames", type=int, default=300,
                    help="frames of the warm-up run that measures the speed for the estimate")
     p.add_argument("--no-estimate", action="store_true", help="skip the warm-up and estimate")
@@ -505,6 +583,14 @@ def main(argv=None) -> dict:
     if launcher == "basic" and (args.jobs or 1) > 1:
         raise ValueError(f"Invalid option --jobs={args.jobs}: --launcher=basic runs one job "
                          "at a time (use --launcher=joblib)")
+    if not args.cpus_per_run > 0:
+        raise ValueError(f"Invalid option --cpus-per-run={args.cpus_per_run}: expected > 0")
+    if not args.gpus_per_run >= 0:
+        raise ValueError(f"Invalid option --gpus-per-run={args.gpus_per_run}: expected >= 0")
+    if launcher != "ray" and (args.ray_address is not None or args.cpus_per_run != 1.0
+                              or args.gpus_per_run != 0.0):
+        raise ValueError("Invalid options --ray-address / --cpus-per-run / --gpus-per-run: "
+                         f"they apply to --launcher ray, not --launcher {launcher}")
     if args.warmup_frames < 10:
         raise ValueError(f"Invalid option --warmup-frames={args.warmup_frames}: expected an "
                          "integer >= 10")
@@ -527,6 +613,7 @@ def main(argv=None) -> dict:
             cfg = compose_run_config(overrides)  # a bad override fails here, before training
             frames = int(cfg.collector.total_frames)
             parallel = args.jobs or (1 if launcher in ("joblib", "submitit_local", "basic")
+                                     else (os.cpu_count() or 1) if launcher == "ray"
                                      else len(pending))
             if args.dry_run:
                 print(f"Estimated wall time for {len(pending)} runs x {frames} frames on "
@@ -544,7 +631,9 @@ def main(argv=None) -> dict:
                           "them; each job then trains slower than the warm-up", flush=True)
         if args.estimate_only:
             return {}
-        failed = run_all(plan, overrides, launcher, args.jobs, args.dry_run)
+        failed = run_all(plan, overrides, launcher, args.jobs, args.dry_run, ray_options={
+            "address": args.ray_address, "cpus_per_run": args.cpus_per_run,
+            "gpus_per_run": args.gpus_per_run})
         if args.dry_run:
             return {}
     out = aggregate(root)

@@ -89,12 +89,13 @@ def test_unknown_launcher_is_named_before_any_work(tmp_path):
     assert not root.exists()
 
 
-def test_missing_plugin_is_named_before_any_work(tmp_path):
-    if importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is not None:
-        pytest.skip("hydra-ray-launcher is installed here")
+def test_missing_plugin_is_named_before_any_work(tmp_path, monkeypatch):
+    # as if Ray were not installed (it is, in dev): the launcher's module cannot be found
+    monkeypatch.setitem(reproduce.LAUNCHERS, "ray",
+                        reproduce.Launcher("ray", "ray_is_not_installed_here", "ray", "ray"))
     root = tmp_path / "never"
-    with pytest.raises(ValueError, match=r"--launcher=ray: the hydra-ray-launcher plugin is "
-                                         r"not installed \(pip install hydra-ray-launcher"):
+    with pytest.raises(ValueError, match=r"--launcher=ray: ray is not installed \(pip install "
+                                         r"ray, or pip install -e '\.\[ray\]'\)"):
         reproduce.main(["--launcher", "ray", "--root", str(root)])
     assert not root.exists()
 
@@ -170,3 +171,33 @@ def test_checkpoint_resume_auto(tmp_path):
     assert ru.resolve_resume(_cfg("cbn_v2", ["checkpoint.resume=false"]), tmp_path) is False
     with pytest.raises(ValueError, match="checkpoint.resume='sometimes'"):
         ru.validate_config(_cfg("cbn_v2", ["checkpoint.resume=sometimes"]), tmp_path)
+
+
+@_needs("ray")
+def test_two_run_grid_through_a_real_local_ray_instance(tmp_path, capsys):
+    """--launcher ray starts a real local Ray instance (2 CPUs), runs each run as a Ray
+    task, and the run folders and aggregated figures are there afterwards."""
+    import ray
+
+    assert not ray.is_initialized()
+    root = tmp_path / "grid"
+    args = ["--launcher", "ray", "--jobs", "2", "--variants", "cbn_v2", "dqn_image",
+            "--seeds", "1", "--k", "200", "--no-estimate", "--root", str(root), *TINY]
+    out = reproduce.main(args)
+    runs = [root / "variants" / v / "seed_0" for v in ("cbn_v2", "dqn_image")]
+    _check_grid(root, runs, out)
+    printed = capsys.readouterr().out
+    assert "Ray: 2 runs on 2 CPUs, 1 node(s)" in printed
+    assert printed.count("finished on ") == 2
+    for run in runs:  # each task's own log beside its run folder
+        assert (run.parent / "seed_0.ray.log").stat().st_size > 0
+    assert not ray.is_initialized()  # the instance it started is shut down
+
+
+def test_ray_options_need_the_ray_launcher(tmp_path):
+    with pytest.raises(ValueError, match="--ray-address"):
+        reproduce.main(["--launcher", "joblib", "--ray-address", "auto", "--root",
+                        str(tmp_path), "--no-estimate"])
+    with pytest.raises(ValueError, match="--cpus-per-run"):
+        reproduce.main(["--launcher", "basic", "--cpus-per-run", "0", "--root",
+                        str(tmp_path), "--no-estimate"])

@@ -40,6 +40,8 @@ _LAZY = {
     "build_model": "scene",
     "SceneRenderer": "scene",
     "helipad_image": "scene",
+    "board_face_image": "scene",
+    "ReachRule": "reach",
     "KinematicExecutor": "control",
     "PhysicsExecutor": "control",
     "CascadedPID": "control",

@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 
 from .layouts import DRONE_HALF_EXTENTS, Layout, Obstacle  # noqa: E402
 
-__all__ = ["build_model", "helipad_image", "SceneIds", "SceneRenderer", "DRONE_MASS"]
+__all__ = ["build_model", "helipad_image", "board_face_image", "SceneIds", "SceneRenderer", "DRONE_MASS"]
 
 # GL contexts of a closed renderer that were current in another (live) thread:
 # freeing them here would delete objects of this thread's context instead
@@ -95,6 +95,39 @@ def helipad_image(
     ym = (y0 + y1) // 2
     img[ym - bar // 2 : ym - bar // 2 + bar, x0:x1] = fg
     return img
+
+
+def board_face_image(layout=None, pixels_per_m: float = 400.0) -> np.ndarray:
+    """The goal board's face as the simulator shows it, at true proportions, for print.
+
+    MuJoCo stretches the square heliport texture (:func:`helipad_image`, in the
+    layout's colours) over the board's ``goal_size`` face (1.0 x 0.8 m in the
+    thesis scene); the detector learned that look, so a real board should
+    print this image at ``goal_size`` (``recipes/print_board.py``).
+
+    Args:
+        layout: a :class:`~torchrl_causal.envs.layouts.Layout` (default: the
+            thesis scene's).
+        pixels_per_m: resolution (400 px/m ~ 100 dpi).
+
+    Returns:
+        ``uint8 [round(h * ppm), round(w * ppm), 3]``.
+
+    Example:
+        >>> board_face_image(pixels_per_m=100).shape
+        (80, 100, 3)
+    """
+    import cv2
+
+    from .layouts import thesis_layout
+
+    layout = thesis_layout() if layout is None else layout
+    if not isinstance(pixels_per_m, (int, float)) or not 10 <= pixels_per_m <= 4000:
+        raise ValueError(f"pixels_per_m must be in [10, 4000], got {pixels_per_m!r}")
+    w, h = layout.goal_size
+    W, H = int(round(w * pixels_per_m)), int(round(h * pixels_per_m))
+    square = helipad_image(1024, *layout.helipad_rgb)
+    return cv2.resize(square, (W, H), interpolation=cv2.INTER_NEAREST)
 
 
 @dataclass

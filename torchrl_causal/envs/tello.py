@@ -23,8 +23,9 @@ ground truth can stand in for both (``emu.sim_detector()``,
 
 Outcomes (no ground truth on a real drone): ``crashed`` when a move is answered
 ``error Motor stop`` (the Tello's reply when a collision stopped it) or the
-drone is found on the ground; ``reached`` when the goal is in sight within
-``reach_distance`` and ``reach_angle``; ``out_of_bounds`` when a move would
+drone is found on the ground; ``reached`` when
+its :class:`~torchrl_causal.envs.reach.ReachRule` says so (distance, bearing, the
+height sensor against the goal's height); ``out_of_bounds`` when a move would
 leave the geofence or the height limits (the move is then **not** sent) or the
 measured height leaves them. Reward: :mod:`~torchrl_causal.envs.rewards` on
 the detector's measurement (``"thesis"``, the default, uses nothing else;
@@ -76,6 +77,7 @@ from torchrl.envs import EnvBase
 
 from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
 from ..schema import ACTION_NAMES
+from .reach import ReachRule
 from .rewards import StepOutcome, make_reward
 from .specs import navigation_specs
 
@@ -175,11 +177,9 @@ class TelloEnv(EnvBase):
         reward: ``"thesis"`` (default), ``"progress"`` or a callable of a
             :class:`~torchrl_causal.envs.rewards.StepOutcome`.
         confidence_threshold: detector score needed for ``goal_in_sight``.
-        reach_distance: goal in sight within this measured distance (m) counts
-            as reached (default 0.55: the simulator's goal point is 0.47 m in
-            front of the board, with a 0.2 m reach radius; at 0.67 the env
-            declared the reach one 0.25 m step before the simulator did).
-        reach_angle: ... and within this angle (deg).
+        reach_rule: a :class:`~torchrl_causal.envs.reach.ReachRule`: when the
+            measured goal counts as reached (default ``ReachRule()``: goal in
+            sight within 0.55 m and 30 deg).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
@@ -237,8 +237,7 @@ class TelloEnv(EnvBase):
         max_depth: float = 10.0,
         reward="thesis",
         confidence_threshold: float = 0.7,
-        reach_distance: float = 0.55,
-        reach_angle: float = 30.0,
+        reach_rule: ReachRule | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         min_height: float = 0.2,
         max_height: float = 2.5,
@@ -282,8 +281,10 @@ class TelloEnv(EnvBase):
         self.reward_fn = make_reward(reward)
         if not (isinstance(confidence_threshold, (int, float)) and 0 <= confidence_threshold <= 1):
             raise ValueError(f"confidence_threshold must be in [0, 1], got {confidence_threshold!r}")
-        _num("reach_distance", reach_distance, 0, strict=True)
-        _num("reach_angle", reach_angle, 0, strict=True)
+        if reach_rule is None:
+            reach_rule = ReachRule()
+        if not isinstance(reach_rule, ReachRule):
+            raise ValueError(f"reach_rule must be a ReachRule or None, got {reach_rule!r}")
         if geofence is not None:
             if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
                     or not all(isinstance(v, (int, float)) for v in geofence)
@@ -321,8 +322,7 @@ class TelloEnv(EnvBase):
         self.turn_deg = float(self.turn)
         self.max_steps = int(max_steps)
         self.max_depth = float(max_depth)
-        self.reach_distance = float(reach_distance)
-        self.reach_angle = float(reach_angle)
+        self.reach_rule = reach_rule
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
         self.max_height = float(max_height)
@@ -556,6 +556,42 @@ class TelloEnv(EnvBase):
             img = x.round().clamp(0, 255).to(torch.uint8)[0].permute(1, 2, 0)
         return img.contiguous()
 
+    def measure_frame(self, frame: np.ndarray, altitude: float | None = None) -> dict:
+        """The goal measurement of one decoded frame, and whether the reach rule fires.
+
+        For calibrating the :class:`~torchrl_causal.envs.reach.ReachRule` on a real
+        drone held (motors off) at known places in front of the board
+        (docs/tello.rst, "Field guide"): ``{"in_sight", "distance", "angle", "box",
+        "reached"}``; ``altitude`` (m) defaults to the rule's goal height.
+
+        Example:
+            >>> import numpy as np, torch
+            >>> from torchrl_causal.perception.goal import GoalDetector
+            >>> class Centre(GoalDetector):  # "sees" the goal filling the middle of the view
+            ...     def detect(self, pixels, depth=None, **_):
+            ...         return torch.tensor([[[20.0, 20.0, 64.0, 64.0]]]), torch.tensor([[0.9]])
+            >>> env = TelloEnv(dry_run=True, detector=Centre(), verbose=False,
+            ...                depth_estimator=lambda p: torch.full(p.shape[:3], 0.5))
+            >>> m = env.measure_frame(np.zeros((720, 960, 3), np.uint8))
+            >>> m["in_sight"], round(m["distance"], 2), m["reached"]
+            (True, 0.5, True)
+            >>> env.close()
+        """
+        pixels = self.preprocess(frame)
+        depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
+        depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
+        meas = self.goal_meter(pixels.unsqueeze(0), depth)
+        in_sight = bool(meas.in_sight[0])
+        out = {"in_sight": in_sight,
+               "distance": float(meas.distance[0]) if in_sight else float("nan"),
+               "angle": float(meas.angle[0]) if in_sight else 0.0,
+               "box": [float(v) for v in meas.box[0].tolist()]}
+        rule = self.reach_rule
+        alt = altitude if altitude is not None else (rule.goal_height or 0.0)
+        out["reached"] = rule(in_sight=in_sight, distance=out["distance"], angle=out["angle"],
+                              box=out["box"], width=self.image_size[1], altitude=alt)
+        return out
+
     def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
         pixels = self.preprocess(self._fresh_frame(frame_since))
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
@@ -567,8 +603,9 @@ class TelloEnv(EnvBase):
         st = self._state()
         alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
         bat = float(st.get("bat", 0.0)) if st else 0.0
-        reached = (in_sight and dist <= self.reach_distance and abs(angle) <= self.reach_angle
-                   and not crashed)
+        reached = not crashed and self.reach_rule(
+            in_sight=in_sight, distance=dist, angle=angle, box=meas.box[0].tolist(),
+            width=self.image_size[1], altitude=alt)
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
