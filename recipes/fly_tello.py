@@ -102,6 +102,15 @@ def parse_args(argv=None):
         assert len(a.video_hw) == 2
     except (ValueError, AssertionError):
         p.error(f"--video-size must look like 240x320, got {a.video_size!r}")
+    h, w = a.video_hw
+    # the Tello streams 960x720 (4:3); the emulator may send it downscaled, never otherwise
+    if not (h * 4 == w * 3 and 120 <= h <= 720 and h % 2 == 0):
+        p.error(f"--video-size {a.video_size}: a Tello streams 960x720 (4:3); the emulator "
+                "sends that or a 4:3 downscale of even height 120-720 (e.g. 720x960, "
+                "480x640, 240x320)")
+    if a.host is not None and a.video_size != p.get_default("video_size"):
+        p.error(f"--video-size {a.video_size}: a real Tello streams 960x720; the option is "
+                "the emulator's")
     if a.run is None:  # the shipped generalist
         from torchrl_causal.pretrained import policy_dir
 

@@ -62,3 +62,26 @@ def test_bad_options_are_named_before_any_flight(capsys):
     with pytest.raises(SystemExit):
         fly_tello.main(["--run", str(ROOT / "docs"), "--episodes", "1"])
     assert "not a run folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--video-size", "100x100"], "a Tello streams 960x720"),
+    (["--video-size", "1080x1440"], "a Tello streams 960x720"),
+    (["--host", "192.168.10.1", "--video-size", "480x640", "--dry-run"], "the option is the emulator's"),
+    (["--reach-distance", "-0.3"], "ReachRule.max_distance"),
+    (["--reach-height", "0"], "ReachRule.max_height_offset"),
+    (["--host", "192.168.10.1", "--reach-height", "0.12", "--dry-run"], "needs --goal-height"),
+])
+def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        fly_tello.main(["--run", str(POLICY), *argv])
+    assert message in capsys.readouterr().err
+
+
+def test_the_reach_rule_options_build_the_rule():
+    args = fly_tello.parse_args(["--run", str(POLICY), "--reach-distance", "0.45",
+                                 "--reach-height", "0.12", "--reach-full-width"])
+    rule = args.reach_rule
+    assert (rule.max_distance, rule.max_height_offset, rule.full_width) == (0.45, 0.12, True)
+    assert rule.goal_height == 1.0  # the emulated layout's height comes per episode
+    assert fly_tello.reach_rule(args, goal_height=1.3).goal_height == 1.3
