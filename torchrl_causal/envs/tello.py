@@ -76,6 +76,7 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
 from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
+from ..perception.video_path import crop_resize
 from ..schema import ACTION_NAMES
 from .reach import ReachRule
 from .rewards import StepOutcome, make_reward
@@ -538,23 +539,7 @@ class TelloEnv(EnvBase):
     def preprocess(self, frame: np.ndarray) -> torch.Tensor:
         """A decoded RGB frame ``[H0, W0, 3]`` -> ``pixels`` uint8 ``image_size``: centre crop
         to the target aspect, then an antialiased bilinear resize."""
-        h, w = self.image_size
-        img = torch.as_tensor(np.ascontiguousarray(frame))
-        H0, W0 = img.shape[:2]
-        if W0 * h > H0 * w:  # too wide: crop the width
-            cw = int(round(H0 * w / h))
-            x0 = (W0 - cw) // 2
-            img = img[:, x0:x0 + cw]
-        elif W0 * h < H0 * w:
-            ch = int(round(W0 * h / w))
-            y0 = (H0 - ch) // 2
-            img = img[y0:y0 + ch]
-        if tuple(img.shape[:2]) != (h, w):
-            x = img.permute(2, 0, 1).unsqueeze(0).float()
-            x = torch.nn.functional.interpolate(x, size=(h, w), mode="bilinear",
-                                                align_corners=False, antialias=True)
-            img = x.round().clamp(0, 255).to(torch.uint8)[0].permute(1, 2, 0)
-        return img.contiguous()
+        return crop_resize(frame, self.image_size)
 
     def measure_frame(self, frame: np.ndarray, altitude: float | None = None) -> dict:
         """The goal measurement of one decoded frame, and whether the reach rule fires.

@@ -647,18 +647,10 @@ class TelloEmulator:
         self._video_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._video_sock.bind((self.host, 0))
         self._place_on_start()
+        from ..perception.video_path import open_h264_encoder
+
         H, W = self.video_size
-        enc = av.CodecContext.create("libx264", "w")
-        enc.width, enc.height = W, H
-        enc.pix_fmt = "yuv420p"
-        enc.bit_rate = self.bitrate
-        enc.gop_size = self.gop
-        enc.framerate = max(1, int(round(self.fps)))
-        enc.options = {"preset": "ultrafast", "tune": "zerolatency", "bframes": "0",
-                       "keyint": str(self.gop), "min-keyint": str(self.gop),
-                       "scenecut": "0", "repeat-headers": "1"}
-        enc.open()
-        self._encoder = enc
+        self._encoder = open_h264_encoder(H, W, bitrate=self.bitrate, gop=self.gop, fps=self.fps)
         self._av = av
 
     def _sim_teardown(self):

@@ -35,6 +35,8 @@ _LAZY = {
     "YoloGoalDetector": "torchrl_causal.perception.yolo",
     "MonoDepth": "torchrl_causal.perception.depth",
     "evaluate_depth": "torchrl_causal.perception.depth",
+    "VideoPath": "torchrl_causal.perception.video_path",
+    "crop_resize": "torchrl_causal.perception.video_path",
 }
 __all__ += list(_LAZY)
 

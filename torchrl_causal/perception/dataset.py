@@ -305,6 +305,7 @@ def render_views(
     randomize_appearance: bool = True,
     start: int = 0,
     goal_distance: Sequence[float] = (0.5, 9.0),
+    video_path=None,
 ) -> Iterator[View]:
     """Renders ``n`` views of ``split``, lazily (see the module docstring).
 
@@ -327,6 +328,14 @@ def render_views(
         goal_distance: ``(low, high)`` horizontal distance (m) of ``"goal"`` views
             from the board's centre, drawn log-uniformly (default 0.5-9 m; e.g.
             ``(0.3, 1.2)`` for close-ups where the board fills the view).
+        video_path: a :class:`~torchrl_causal.perception.video_path.VideoPath`:
+            each view's RGB is rendered at its ``stream_size`` (the Tello's
+            960 x 720), sent through it (camera jitter, H.264 in a continuing
+            stream) and centre-cropped and resized to ``image_size`` as
+            ``TelloEnv`` does (:func:`~torchrl_causal.perception.video_path.crop_resize`);
+            depth and box stay exact (rendered at ``image_size``: the crop keeps
+            the vertical field of view, so the two renders show the same view).
+            ``image_size`` must not be wider than the stream's aspect.
 
     Yields:
         :class:`View` objects.
@@ -362,18 +371,29 @@ def render_views(
     if not 0 < lo < hi:
         raise ValueError(f"goal_distance must be (low, high) with 0 < low < high, "
                          f"got {goal_distance!r}")
+    if video_path is not None:
+        from .video_path import VideoPath
+
+        if not isinstance(video_path, VideoPath):
+            raise ValueError(f"video_path must be a VideoPath or None, got {video_path!r}")
+        sh, sw = video_path.stream_size
+        if w * sh > sw * h:
+            raise ValueError(f"image_size {(h, w)} is wider than the video stream "
+                             f"{video_path.stream_size}: its view cannot be cropped from it")
     return _render(
         split, n, seed, (h, w), layout_seed, goal_absent_frac, start_frac, views_per_layout,
         min_fraction, float(fov_deg), float(max_depth), max_tilt_deg,
-        bool(randomize_appearance), start, (lo, hi),
+        bool(randomize_appearance), start, (lo, hi), video_path,
     )
 
 
 def _render(
     split, n, seed, image_size, layout_seed, absent_frac, start_frac, per_layout,
     min_fraction, fov_deg, max_depth, max_tilt, randomize, start, goal_distance=(0.5, 9.0),
+    video_path=None,
 ) -> Iterator[View]:
     from ..envs.drone import DroneNavEnv
+    from ..envs.scene import SceneRenderer
 
     if n == 0:
         return
@@ -393,6 +413,7 @@ def _render(
     indices = layout_indices(split, last_layout + 1)
     appearance = None
     current = None
+    stream = None  # the video path's renderer, at the stream's size
     try:
         for i in range(start, start + n):
             lay_idx = indices[i // per_layout]
@@ -401,6 +422,15 @@ def _render(
                 env._load(env._select_layout())
                 appearance = _Appearance(env.model, env.ids)
                 current = lay_idx
+                if video_path is not None:
+                    sh, sw = video_path.stream_size
+                    g = env.model.vis.global_
+                    g.offwidth, g.offheight = max(g.offwidth, sw), max(g.offheight, sh)
+                    if stream is None:
+                        stream = SceneRenderer(env.model, sh, sw, camera=env.ids.camera,
+                                               max_depth=max_depth)
+                    else:
+                        stream.set_model(env.model, env.ids.camera)
             rng = np.random.default_rng(
                 np.random.SeedSequence([seed, _SPLIT_ID[split], i, layout_seed])
             )
@@ -421,8 +451,14 @@ def _render(
             obs = env._observe(False, False)  # the env's own render + segmentation box
             count = int(obs["goal_pixels"][0])
             box = tuple(float(v) for v in obs["goal_box"].tolist())
+            rgb = obs["pixels"].numpy().copy()
+            if video_path is not None:  # the same view through the camera path
+                from .video_path import crop_resize
+
+                frame, _ = stream.render(env.data)  # kinematics / lights set by _observe
+                rgb = crop_resize(video_path(frame.copy()), (h, w)).numpy()
             yield View(
-                rgb=obs["pixels"].numpy().copy(),
+                rgb=rgb,
                 depth=obs["depth"].numpy().copy(),
                 box=box if count > 0 and count >= min_pixels else None,
                 goal_pixels=count,
@@ -433,6 +469,8 @@ def _render(
                 pose=(x, y, z, yaw, float(pitch), float(roll)),
             )
     finally:
+        if stream is not None:
+            stream.close()
         env.close()
 
 
@@ -556,7 +594,8 @@ def write_datasets(
         "seed": seed,
         "layout_seed": int(layout_seed),
         "image_size": [h, w],
-        "view_options": {k: v for k, v in view_options.items()},
+        "view_options": {k: (v.to_dict() if hasattr(v, "to_dict") else v)
+                         for k, v in view_options.items()},
         "seconds": round(time.perf_counter() - t0, 1),
     }
     (root / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
@@ -791,8 +830,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--start-frac", type=float, default=0.2)
     p.add_argument("--goal-distance", type=float, nargs=2, default=(0.5, 9.0),
                    metavar=("LOW", "HIGH"), help="distance range (m) of views of the goal")
+    p.add_argument("--video-path", action="store_true",
+                   help="RGB through the Tello camera path: rendered at 960x720, jitter, "
+                        "H.264 at the emulator's settings, cropped/resized to --image-size")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
+    extra = {}
+    if a.video_path:
+        from .video_path import VideoPath
+
+        extra["video_path"] = VideoPath(seed=a.seed)
     meta = write_datasets(
         a.out,
         n_train=a.n_train,
@@ -806,6 +853,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         goal_distance=tuple(a.goal_distance),
         views_per_layout=a.views_per_layout,
         progress=not a.no_progress,
+        **extra,
     )
     print(json.dumps(meta), file=sys.stdout)
     return meta
