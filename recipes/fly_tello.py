@@ -82,12 +82,15 @@ def parse_args(argv=None):
     p.add_argument("--reach-distance", type=float, default=None,
                    help="TelloEnv's ReachRule: goal in sight within this measured distance (m) "
                         "of the camera (default: ReachRule's; see docs/tello.rst)")
-    p.add_argument("--reach-height", type=float, default=None,
-                   help="ReachRule: also |height sensor - goal height| <= this (m); the goal "
-                        "height is the emulated layout's, or --goal-height on a real drone")
+    p.add_argument("--reach-height", type=float, default=0.12,
+                   help="ReachRule: also |height sensor - goal height| <= this (m; default "
+                        "0.12); the goal height is the emulated layout's, or --goal-height on "
+                        "a real drone")
+    p.add_argument("--no-height-check", action="store_true",
+                   help="ReachRule: do not check the height sensor (the old rule)")
     p.add_argument("--goal-height", type=float, default=None,
                    help="real drone: the goal point's height above the floor (m), the board "
-                        "centre's height (needed by --reach-height)")
+                        "centre's height (default 1.0, the field guide's board)")
     p.add_argument("--reach-full-width", action="store_true",
                    help="ReachRule: the goal's box must span the image's width")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
@@ -120,9 +123,8 @@ def parse_args(argv=None):
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
     if a.perception not in ("rgb", "sim") and ":" not in a.perception:
         p.error(f"--perception must be rgb, sim or module:factory, got {a.perception!r}")
-    if a.reach_height is not None and a.host is not None and a.goal_height is None:
-        p.error("--reach-height on a real drone needs --goal-height (the board centre's "
-                "height above the floor, m)")
+    if a.no_height_check:
+        a.reach_height = None
     try:
         a.reach_rule = reach_rule(a)
     except ValueError as e:

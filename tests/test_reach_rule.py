@@ -33,10 +33,10 @@ def test_each_condition_vetoes_on_its_own():
     assert rule(**_m(altitude=0.89))
     assert not rule(**_m(box=(10.0, 0.0, 84.0, 84.0)))  # the board's left edge in view
     assert not rule(**_m(box=(0.0, 0.0, 70.0, 84.0)))
-    # the default is the old rule: distance and angle only
-    old = ReachRule()
-    assert old(**_m(distance=0.55, altitude=3.0, box=(30, 30, 50, 50)))
-    assert not old(**_m(distance=0.56))
+    # without goal_height: distance and angle only (0.45 m by default)
+    plain = ReachRule()
+    assert plain(**_m(distance=0.45, altitude=3.0, box=(30, 30, 50, 50)))
+    assert not plain(**_m(distance=0.46))
 
 
 @pytest.mark.parametrize("kw,name", [

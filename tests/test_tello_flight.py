@@ -70,7 +70,6 @@ def test_bad_options_are_named_before_any_flight(capsys):
     (["--host", "192.168.10.1", "--video-size", "480x640", "--dry-run"], "the option is the emulator's"),
     (["--reach-distance", "-0.3"], "ReachRule.max_distance"),
     (["--reach-height", "0"], "ReachRule.max_height_offset"),
-    (["--host", "192.168.10.1", "--reach-height", "0.12", "--dry-run"], "needs --goal-height"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -85,3 +84,9 @@ def test_the_reach_rule_options_build_the_rule():
     assert (rule.max_distance, rule.max_height_offset, rule.full_width) == (0.45, 0.12, True)
     assert rule.goal_height == 1.0  # the emulated layout's height comes per episode
     assert fly_tello.reach_rule(args, goal_height=1.3).goal_height == 1.3
+    # the defaults: 0.45 m and the height sensor within 0.12 m; --no-height-check: the old form
+    default = fly_tello.parse_args(["--run", str(POLICY)]).reach_rule
+    assert (default.max_distance, default.max_height_offset, default.goal_height) == \
+        (0.45, 0.12, 1.0)
+    plain = fly_tello.parse_args(["--run", str(POLICY), "--no-height-check"]).reach_rule
+    assert plain.goal_height is None

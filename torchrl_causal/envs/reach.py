@@ -58,7 +58,8 @@ class ReachRule:
 
     Args:
         max_distance: the goal in sight within this measured distance (m) of the
-            camera (0.05-3).
+            camera (0.05-3; default 0.45: the drone's centre about 0.1 m short of
+            the goal point; the old 0.55 fired on the sphere's surface).
         min_distance: ... and not closer than this (m; default 0).
         max_angle: ... and its bearing within this angle (deg, 0-90).
         goal_height: the goal point's height above the floor (m), compared with
@@ -69,14 +70,14 @@ class ReachRule:
 
     Example:
         >>> ReachRule().max_distance, ReachRule().goal_height
-        (0.55, None)
+        (0.45, None)
         >>> ReachRule(max_distance=-1)
         Traceback (most recent call last):
         ...
         ValueError: ReachRule.max_distance must be a finite number in (0.05, 3.0], got -1
     """
 
-    max_distance: float = 0.55
+    max_distance: float = 0.45
     min_distance: float = 0.0
     max_angle: float = 30.0
     goal_height: float | None = None

@@ -180,7 +180,8 @@ class TelloEnv(EnvBase):
         confidence_threshold: detector score needed for ``goal_in_sight``.
         reach_rule: a :class:`~torchrl_causal.envs.reach.ReachRule`: when the
             measured goal counts as reached (default ``ReachRule()``: goal in
-            sight within 0.55 m and 30 deg).
+            sight within 0.45 m of the camera and 30 deg; give it ``goal_height``
+            to check the height sensor too, as ``fly_tello.py`` does).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
