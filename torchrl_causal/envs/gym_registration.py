@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import torch
 from gymnasium import spaces
 
 __all__ = ["GYM_ID", "GRIDNAV_GYM_ID", "DroneNavGymEnv", "register_envs"]
@@ -45,8 +46,14 @@ class DroneNavGymEnv(gym.Env):
 
     Args:
         render_mode: ``None`` or ``"rgb_array"`` (returns the camera image).
+        env: a TorchRL env to expose instead of a new ``DroneNavEnv`` -- e.g.
+            a ``TransformedEnv`` with the nine features
+            (:func:`~torchrl_causal.transforms.make_causal_transforms`), so that
+            another library (Stable-Baselines3) trains on the same
+            observations; unbatched, CPU, a ``Categorical`` action.
+        obs_keys: the observation keys to expose (default: all of the env's).
         **options: :class:`~torchrl_causal.envs.DroneNavEnv` options
-            (``device`` is forced to CPU).
+            (``device`` is forced to CPU), when ``env`` is not given.
 
     Example:
         >>> env = DroneNavGymEnv(seed=0)
@@ -59,22 +66,42 @@ class DroneNavGymEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
 
-    def __init__(self, render_mode: str | None = None, **options):
+    def __init__(self, render_mode: str | None = None, *, env=None, obs_keys=None, **options):
         from .drone import DroneNavEnv
 
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        options["device"] = "cpu"
         self.render_mode = render_mode
-        self.env = DroneNavEnv(**options)
+        if env is None:
+            options["device"] = "cpu"
+            env = DroneNavEnv(**options)
+        elif options:
+            raise ValueError(f"DroneNavGymEnv: give env= or DroneNavEnv options, not both "
+                             f"(got {sorted(options)})")
+        if tuple(env.batch_size):
+            raise ValueError(f"DroneNavGymEnv needs an unbatched env, got batch_size "
+                             f"{tuple(env.batch_size)}")
+        self.env = env
         self.action_space = spaces.Discrete(int(self.env.action_spec.n))
+        spec_keys = list(self.env.observation_spec.keys())
+        if obs_keys is not None:
+            missing = [k for k in obs_keys if k not in spec_keys]
+            if missing:
+                raise ValueError(f"obs_keys {missing} are not observations of the env "
+                                 f"(it has {spec_keys})")
         obs_spaces = {}
         for key, spec in self.env.observation_spec.items():
+            if obs_keys is not None and key not in obs_keys:
+                continue
+            if not isinstance(key, str):
+                continue
             shape = tuple(spec.shape)
             if key in _FLAGS:
                 obs_spaces[key] = spaces.MultiBinary(shape)
                 continue
-            dtype = np.uint8 if key == "pixels" else np.float32
+            dtype = np.uint8 if key == "pixels" else (
+                np.int64 if not spec.dtype.is_floating_point and spec.dtype != torch.bool
+                else np.float32)
             if hasattr(spec, "space") and hasattr(spec.space, "low"):
                 low = spec.space.low.cpu().numpy().astype(dtype)
                 high = spec.space.high.cpu().numpy().astype(dtype)
@@ -89,7 +116,8 @@ class DroneNavGymEnv(gym.Env):
         obs = {}
         for key in self.observation_space.spaces:
             v = td.get(key).cpu().numpy()
-            obs[key] = v.astype(np.int8) if key in _FLAGS else v
+            space = self.observation_space.spaces[key]
+            obs[key] = v.astype(np.int8) if key in _FLAGS else v.astype(space.dtype, copy=False)
         self._last = obs
         return obs
 

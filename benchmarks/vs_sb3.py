@@ -1,0 +1,265 @@
+"""Stable-Baselines3's DQN beside this library's ``DQNLoop``: speed and sample efficiency.
+
+Both train the same DQN on the same observations -- the thesis scene's nine
+continuous features (``causal_features``, from the project's own feature
+stack; SB3 reads them through :class:`~torchrl_causal.envs.gym_registration.DroneNavGymEnv`
+wrapped around the very TorchRL env the recipe builds) -- with the same
+Q-network (two dense ReLU layers of 256 on the features divided by the same
+per-feature scale, a linear head), Huber loss, plain (not double) DQN targets,
+no reward scaling, Adam (same learning rate and eps), gradient-norm clip 10,
+replay ratio (``updates_per_frame`` -> SB3 ``train_freq``), batch size, replay
+size, ``learning_starts``, hard target sync (SB3 counts it in env steps: the
+recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration.
+``DQNLoop`` runs as the recipe ``dqn_features`` with ``features.image=false``
+(no CBN, no gate).
+
+Figures (one JSON object each):
+
+* ``frames_per_second``: each library trains ``--speed-frames`` frames with no
+  evaluation, the two runs alternated ``--repeats`` times in this one process;
+  the medians and their ratio (target of the "thesis protocol" issue:
+  ``DQNLoop`` >= SB3);
+* ``first_success`` (per library): over ``--seeds``, the frames of the first
+  periodic greedy evaluation (``--eval-every`` frames, ``--eval-episodes``
+  episodes on the thesis scene) that reaches the goal, within ``--frames``;
+  and the final greedy success. Target: not worse than SB3 within the CIs.
+
+::
+
+    python benchmarks/vs_sb3.py                               # speed + 3 seeds x 12,000 frames
+    python benchmarks/vs_sb3.py --seeds 0 --frames 4000 --speed-frames 1000   # a quick look
+
+Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+
+def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, out: Path,
+                  extra=()):
+    """The ``dqn_features`` recipe on the nine features alone, set up as the SB3 run is."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(version_base=None, config_dir=str(ROOT / "recipes" / "config")):
+        return compose("base", [
+            "variant=dqn_features", "features.image=false", "features.inputs=[causal_features]",
+            "features.history=0", "loss.double_dqn=false", "loss.reward_scale=1.0",
+            "loss.function=huber", "optim.name=adam", "loss.updates_per_frame=0.25",
+            f"collector.total_frames={frames}", f"seed={seed}", "threads=1", "progress=false",
+            f"eval.interval_frames={eval_every}", f"eval.episodes={eval_episodes}",
+            f"eval.final_episodes={eval_episodes}", "eval.keep_best=false",
+            "env.eval_layouts=[thesis]", "outputs.videos=0", "outputs.draw_cbns=false",
+            "checkpoint.interval_frames=0", "logger.backend=none", f"output_dir={out}",
+            *extra])
+
+
+def run_dqnloop(cfg) -> dict:
+    """``recipes/train.py``'s ``train`` on ``cfg``: frames/s and the periodic evaluations."""
+    import train as train_recipe
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        summary = train_recipe.train(cfg)
+    out = Path(cfg.output_dir)
+    evals = []
+    if (out / "eval.csv").exists():
+        import pandas as pd
+
+        df = pd.read_csv(out / "eval.csv")
+        evals = [(int(r.frames), float(r.success_rate)) for r in df.itertuples()]
+    final = summary.get("final_eval", {}).get("thesis", {}).get("success_rate")
+    return {"fps": float(summary["loop_frames_per_second"]), "evals": evals, "final": final}
+
+
+def sb3_model(cfg, env, seed: int):
+    """SB3's DQN with the recipe's settings and the same Q-network."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+    from torchrl_causal.pretrained.policy import FEATURE_SCALES
+
+    scale = torch.tensor(FEATURE_SCALES["causal_features"], dtype=torch.float32)
+
+    class ScaledFeatures(BaseFeaturesExtractor):
+        """``causal_features / scale``, as ``FeatureQNet`` divides them."""
+
+        def __init__(self, observation_space: gym.spaces.Dict):
+            super().__init__(observation_space, features_dim=len(scale))
+            self.register_buffer("scale", scale.clone())
+
+        def forward(self, obs):
+            return obs["causal_features"].float() / self.scale
+
+    upf = float(cfg.loss.updates_per_frame)
+    train_freq = max(1, round(1.0 / upf))
+    frames = int(cfg.collector.total_frames)
+    return DQN(
+        "MultiInputPolicy", env, learning_rate=float(cfg.optim.lr),
+        buffer_size=int(cfg.buffer.size), learning_starts=int(cfg.loss.learning_starts),
+        batch_size=int(cfg.buffer.batch_size), gamma=float(cfg.loss.gamma),
+        train_freq=(train_freq, "step"), gradient_steps=1,
+        target_update_interval=int(cfg.loss.target_update_interval) * train_freq,
+        exploration_initial_eps=float(cfg.exploration.eps_init),
+        exploration_final_eps=float(cfg.exploration.eps_end),
+        exploration_fraction=min(1.0, float(cfg.exploration.annealing_frames) / frames),
+        max_grad_norm=float(cfg.loss.max_grad_norm), seed=seed, device="cpu", verbose=0,
+        policy_kwargs=dict(net_arch=[256, 256], activation_fn=torch.nn.ReLU,
+                           features_extractor_class=ScaledFeatures,
+                           optimizer_kwargs=dict(eps=float(cfg.optim.eps))),
+    )
+
+
+def sb3_env(cfg):
+    """The recipe's own TorchRL env (thesis scene + feature stack) as a gymnasium env."""
+    import recipe_utils as ru
+    import train as train_recipe
+
+    from torchrl_causal.envs.gym_registration import DroneNavGymEnv
+
+    env = train_recipe.build_env(cfg, ru.VARIANTS[cfg.variant], "thesis", "cpu")
+    return DroneNavGymEnv(env=env, obs_keys=["causal_features"])
+
+
+def greedy_success(model, env, episodes: int) -> float:
+    wins = 0
+    for _ in range(episodes):
+        obs, _ = env.reset()
+        done = False
+        info = {}
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, _, term, trunc, info = env.step(int(action))
+            done = term or trunc
+        wins += bool(info.get("reached"))
+    return wins / episodes
+
+
+def run_sb3(cfg, seed: int, eval_every: int, eval_episodes: int) -> dict:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    import torch
+
+    torch.set_num_threads(1)
+    env, eval_env = sb3_env(cfg), sb3_env(cfg)
+    model = sb3_model(cfg, env, seed)
+    frames = int(cfg.collector.total_frames)
+    evals = []
+
+    class Evaluate(BaseCallback):
+        def _on_step(self) -> bool:
+            if eval_every and self.num_timesteps % eval_every == 0:
+                evals.append((self.num_timesteps, greedy_success(self.model, eval_env,
+                                                                 eval_episodes)))
+            return True
+
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=frames, callback=Evaluate())
+    seconds = time.perf_counter() - t0
+    final = greedy_success(model, eval_env, eval_episodes)
+    env.close()
+    eval_env.close()
+    return {"fps": frames / seconds, "evals": evals, "final": final}
+
+
+def first_success(evals) -> int | None:
+    return next((f for f, s in evals if s > 0), None)
+
+
+def mean_ci(values):
+    values = [v for v in values if v is not None]
+    if not values:
+        return None, None
+    if len(values) == 1:
+        return float(values[0]), 0.0
+    t = {2: 12.706, 3: 4.303, 4: 3.182, 5: 2.776, 6: 2.571, 7: 2.447, 8: 2.365, 9: 2.306}
+    half = t.get(len(values), 2.262) * statistics.stdev(values) / math.sqrt(len(values))
+    return float(statistics.mean(values)), float(half)
+
+
+def main(argv=None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=12000, help="frames per sample-efficiency run")
+    p.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
+    p.add_argument("--eval-every", type=int, default=1000)
+    p.add_argument("--eval-episodes", type=int, default=3)
+    p.add_argument("--speed-frames", type=int, default=3000,
+                   help="frames per speed run (no evaluation); 0 skips the speed figure")
+    p.add_argument("--repeats", type=int, default=2, help="speed runs per library, alternated")
+    p.add_argument("--override", action="append", default=[],
+                   help="a recipe override for every run of both libraries (repeatable), "
+                        "e.g. loss.learning_starts=200")
+    a = p.parse_args(argv)
+    for name in ("frames", "eval_every", "eval_episodes", "repeats"):
+        if getattr(a, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
+    if a.speed_frames < 0:
+        p.error(f"--speed-frames must be >= 0, got {a.speed_frames}")
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        p.error("stable-baselines3 is not installed: pip install -e '.[bench]'")
+    import torch
+
+    torch.set_num_threads(1)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="vs_sb3_") as tmp:
+        if a.speed_frames:
+            fps = {"dqnloop": [], "sb3": []}
+            starts = min(1000, a.speed_frames // 3)
+            for r in range(a.repeats):
+                cfg = recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}",
+                                    [f"loss.learning_starts={starts}", *a.override])
+                fps["dqnloop"].append(run_dqnloop(cfg)["fps"])
+                fps["sb3"].append(run_sb3(cfg, 0, 0, 1)["fps"])
+            ours, theirs = (statistics.median(fps[k]) for k in ("dqnloop", "sb3"))
+            rows.append({"bench": "vs_sb3", "figure": "frames_per_second",
+                         "frames": a.speed_frames, "repeats": a.repeats,
+                         "dqnloop": [round(v, 1) for v in fps["dqnloop"]],
+                         "sb3": [round(v, 1) for v in fps["sb3"]],
+                         "dqnloop_median": round(ours, 1), "sb3_median": round(theirs, 1),
+                         "ratio_dqnloop_over_sb3": round(ours / theirs, 3)})
+            print(json.dumps(rows[-1]), flush=True)
+        results = {"dqnloop": [], "sb3": []}
+        for seed in a.seeds:
+            cfg = recipe_config(a.frames, seed, a.eval_every, a.eval_episodes,
+                                Path(tmp) / f"seed{seed}", a.override)
+            results["dqnloop"].append(run_dqnloop(cfg))
+            results["sb3"].append(run_sb3(cfg, seed, a.eval_every, a.eval_episodes))
+        for lib, runs in results.items():
+            if not runs:
+                continue
+            firsts = [first_success(r["evals"]) for r in runs]
+            m, h = mean_ci([f if f is not None else a.frames for f in firsts])
+            fm, fh = mean_ci([r["final"] for r in runs])
+            rows.append({"bench": "vs_sb3", "figure": "first_success", "library": lib,
+                         "frames": a.frames, "seeds": a.seeds,
+                         "first_greedy_success_frames": firsts,
+                         "first_success_mean": m, "first_success_ci95": h,
+                         "final_success": [r["final"] for r in runs],
+                         "final_success_mean": fm, "final_success_ci95": fh,
+                         "frames_per_second": [round(r["fps"], 1) for r in runs]})
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

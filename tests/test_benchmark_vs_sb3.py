@@ -1,0 +1,55 @@
+"""benchmarks/vs_sb3.py: SB3's DQN and DQNLoop train the same Q-network on the same
+observations; a tiny real run of both prints both figures."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("stable_baselines3") is None,
+                                reason="stable-baselines3 not installed (the bench extra)")
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("vs_sb3", ROOT / "benchmarks" / "vs_sb3.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_same_network_and_settings_on_both_sides(tmp_path, monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    bench = _bench()
+    cfg = bench.recipe_config(800, 0, 0, 1, tmp_path / "run")
+    env = bench.sb3_env(cfg)
+    model = bench.sb3_model(cfg, env, 0)
+    q = model.q_net
+    linears = [m for m in q.modules() if m.__class__.__name__ == "Linear"]
+    assert [(m.in_features, m.out_features) for m in linears] == [(9, 256), (256, 256), (256, 8)]
+    assert model.train_freq.frequency == 4 and model.gradient_steps == 1  # 0.25 updates/frame
+    assert model.target_update_interval == 250 * 4 and model.batch_size == 32
+    assert model.learning_starts == cfg.loss.learning_starts
+    env.close()
+
+
+def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    rows = _bench().main(["--seeds", "0", "--frames", "300", "--eval-every", "150",
+                          "--eval-episodes", "1", "--speed-frames", "300", "--repeats", "1",
+                          "--override", "loss.learning_starts=100",
+                          "--override", "loss.target_update_interval=10",
+                          "--override", "exploration.annealing_frames=200",
+                          "--override", "env.max_steps=40"])
+    speed = rows[0]
+    assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
+    libs = {r["library"]: r for r in rows[1:]}
+    assert set(libs) == {"dqnloop", "sb3"}
+    for r in libs.values():
+        assert len(r["final_success"]) == 1 and 0.0 <= r["final_success"][0] <= 1.0
+    with pytest.raises(SystemExit):
+        _bench().main(["--frames", "0"])
