@@ -557,10 +557,10 @@ class TelloEnv(EnvBase):
             ...     def detect(self, pixels, depth=None, **_):
             ...         return torch.tensor([[[20.0, 20.0, 64.0, 64.0]]]), torch.tensor([[0.9]])
             >>> env = TelloEnv(dry_run=True, detector=Centre(), verbose=False,
-            ...                depth_estimator=lambda p: torch.full(p.shape[:3], 0.5))
+            ...                depth_estimator=lambda p: torch.full(p.shape[:3], 0.4))
             >>> m = env.measure_frame(np.zeros((720, 960, 3), np.uint8))
             >>> m["in_sight"], round(m["distance"], 2), m["reached"]
-            (True, 0.5, True)
+            (True, 0.4, True)
             >>> env.close()
         """
         pixels = self.preprocess(frame)

@@ -612,14 +612,16 @@ class DQNLoop:
             self._collector.reset()
 
     # ------------------------------------------------------------------ steps
-    def _record_episodes(self, batch) -> bool:
+    def _record_episodes(self, batch, n_envs: int, steps: int) -> bool:
         """Running sums -> one ``episodes.csv`` row per finished episode.
 
-        ``batch`` is ``[envs, time]``; steps are taken in collection order
-        (time, then env). Returns True when every env's last step ended an episode.
+        ``batch`` holds ``n_envs * steps`` frames laid out as ``[envs, time]`` (any
+        shape of that many elements in that order: only the few keys read here
+        are reshaped, never the whole tensordict); steps are taken in collection
+        order (time, then env). Returns True when every env's last step ended an
+        episode.
         """
         st, nxt = self.state, batch["next"]
-        n_envs, steps = batch.shape
         frames0 = st["frames"] - n_envs * steps
         done = nxt["done"].reshape(n_envs, steps).tolist()
         rewards = nxt["reward"].reshape(n_envs, steps).tolist()
@@ -683,18 +685,21 @@ class DQNLoop:
         (always True with several envs: checkpoints then cut episodes in flight).
         """
         st = self.state
-        batch = batch.reshape(self.num_envs, -1)  # [envs, time]
-        n = batch.numel()
+        n = batch.numel()  # laid out [envs, time]
         st["frames"] += n
         self.explorer.step(n)  # the gate's (or egreedy's) epsilon schedule
         t0 = time.perf_counter()
-        self.replay_buffer.extend(batch.reshape(-1).select(*self.store_keys))  # + hook: Alg. 2
+        # only the stored keys are flattened: reshaping the whole batch (images, depth,
+        # every feature, twice with "next") cost more than the buffer write itself
+        stored = batch.select(*self.store_keys)
+        self.replay_buffer.extend(stored if stored.ndim == 1 else stored.reshape(-1))  # + hook
         st["time_extend"] += time.perf_counter() - t0
         if self.hook is not None and self.hook.learner.n_relearns > st["n_relearns"]:
             st["n_relearns"] = self.hook.learner.n_relearns
             self._recs[2].write({"relearn": st["n_relearns"], "frames": st["frames"],
                                  "episode": st["episodes"] + 1})
-        at_episode_end = self._record_episodes(batch) or self.num_envs > 1
+        at_episode_end = self._record_episodes(batch, self.num_envs, n // self.num_envs) \
+            or self.num_envs > 1
         return n, at_episode_end
 
     def _finished(self) -> bool:
