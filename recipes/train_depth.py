@@ -52,7 +52,12 @@ from torchrl_causal.perception.depth import (
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="data set root (holds depth/{train,val,test}.npz)")
+    p.add_argument("--data", required=True, nargs="+",
+                   help="data set root(s) (each holds depth/{train,val,test}.npz; several "
+                        "roots are trained on together and tested one by one)")
+    p.add_argument("--init", default=None,
+                   help="fine-tune: start from these MonoDepth weights (their network "
+                        "replaces --widths/--decoder)")
     p.add_argument("--out", default=str(DEFAULT_WEIGHTS), help="weights file to write (+ .json sidecar)")
     p.add_argument("--run-dir", default="outputs/depth_run", help="checkpoints and history")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
@@ -85,14 +90,29 @@ def parse_args(argv=None) -> argparse.Namespace:
         raise ValueError(f"--crop-widths must be multiples of 32, got {a.crop_widths}")
     if not 0.0 <= a.lowres_prob <= 1.0:
         raise ValueError(f"--lowres-prob must be in [0, 1], got {a.lowres_prob}")
-    for split in ("train", "val", "test"):
-        f = Path(a.data) / "depth" / f"{split}.npz"
-        if not f.is_file():
-            raise ValueError(
-                f"--data {a.data!r}: {f} not found; render it with "
-                f"python -m torchrl_causal.perception.dataset --out {a.data} --n-train N --n-val N --n-test N"
-            )
+    for root in a.data:
+        for split in ("train", "val", "test"):
+            f = Path(root) / "depth" / f"{split}.npz"
+            if not f.is_file():
+                raise ValueError(
+                    f"--data {root!r}: {f} not found; render it with "
+                    f"python -m torchrl_causal.perception.dataset --out {root} --n-train N --n-val N --n-test N"
+                )
+    if a.init is not None and not Path(a.init).is_file():
+        raise ValueError(f"--init {a.init!r}: no such weights file")
     return a
+
+
+def concat_splits(parts: list[dict]) -> dict:
+    """Several :func:`load_split` results (same image size) as one."""
+    if len(parts) == 1:
+        return parts[0]
+    sizes = {tuple(p["image_size"]) for p in parts}
+    if len(sizes) > 1:
+        raise ValueError(f"--data roots have different image sizes {sorted(sizes)}")
+    return {"full": torch.cat([p["full"] for p in parts]), "low": torch.cat([p["low"] for p in parts]),
+            "depth": torch.cat([p["depth"] for p in parts]), "image_size": parts[0]["image_size"],
+            "n": sum(p["n"] for p in parts)}
 
 
 # ----------------------------------------------------------------------------- data
@@ -166,7 +186,9 @@ def validate(net: FCRN, data: dict, batch_size: int = 32) -> dict:
         for k, v in depth_metrics(pred, data["depth"][s : s + batch_size].float(), max_depth=net.max_depth).items():
             total[k] = total.get(k, 0) + v
     n, nn_ = total.pop("n_images"), max(total.pop("n_images_in_range"), 1)
-    return {k: v / (nn_ if k.endswith("_in_range") else n) for k, v in total.items()}
+    nc = max(total.pop("n_images_near"), 1)
+    return {k: v / (nn_ if k.endswith("_in_range") else nc if k.endswith("_near") else n)
+            for k, v in total.items()}
 
 
 # ----------------------------------------------------------------------------- timing
@@ -198,20 +220,27 @@ def main(argv=None) -> dict:
     a = parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.manual_seed(a.seed)
-    root = Path(a.data)
+    roots = [Path(r) for r in a.data]
+    root = roots[0]
     run_dir = Path(a.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    data_meta = {}
-    if (root / "meta.json").is_file():
-        data_meta = json.loads((root / "meta.json").read_text())
+    metas = [json.loads((r / "meta.json").read_text()) if (r / "meta.json").is_file() else {}
+             for r in roots]
+    data_meta = metas[0]
 
     t_load = time.perf_counter()
-    train = load_split(root / "depth" / "train.npz", a.work_height, a.limit_train)
-    val = load_split(root / "depth" / "val.npz", a.work_height, a.limit_eval)
+    train = concat_splits([load_split(r / "depth" / "train.npz", a.work_height, a.limit_train)
+                           for r in roots])
+    val = concat_splits([load_split(r / "depth" / "val.npz", a.work_height, a.limit_eval)
+                         for r in roots])
     print(f"data: {train['n']} train, {val['n']} val pairs of {train['image_size']} "
           f"-> working {tuple(train['full'].shape[-2:])} ({time.perf_counter() - t_load:.1f} s)", flush=True)
 
-    net = FCRN(widths=tuple(a.widths), decoder=tuple(a.decoder))
+    if a.init is not None:  # fine-tuning: the starting weights bring their network
+        net = MonoDepth.load(a.init).net
+        net.float()
+    else:
+        net = FCRN(widths=tuple(a.widths), decoder=tuple(a.decoder))
     steps_per_epoch = max(1, train["n"] // a.batch_size)
     total_steps = steps_per_epoch * a.epochs
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=a.weight_decay)
@@ -222,7 +251,8 @@ def main(argv=None) -> dict:
     last = run_dir / "last.pt"
     if a.resume and last.is_file():
         ck = torch.load(last, map_location="cpu", weights_only=False)
-        keys = ("data", "epochs", "batch_size", "lr", "seed", "widths", "decoder", "work_height", "limit_train")
+        keys = ("data", "epochs", "batch_size", "lr", "seed", "widths", "decoder", "work_height",
+                "limit_train", "init")
         diff = [k for k in keys if ck["args"].get(k) != vars(a)[k]]
         if diff:
             raise ValueError(f"--resume: {last} was made with other options {diff}; use the same ones")
@@ -291,6 +321,9 @@ def main(argv=None) -> dict:
         "val_{}x{}".format(*train["image_size"]): evaluate_depth(
             est, root / "depth" / "val.npz", limit=a.limit_eval),
     }
+    for r in roots[1:]:  # each further root's own test split, by its folder name
+        metrics["test_{}x{}_{}".format(*train["image_size"], r.name)] = evaluate_depth(
+            est, r / "depth" / "test.npz", limit=a.limit_eval)
     if a.n_test_84 > 0:
         from torchrl_causal.perception.dataset import render_views
 
@@ -308,9 +341,13 @@ def main(argv=None) -> dict:
         "name": "monodepth",
         "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
         "seed": a.seed,
+        "init": a.init,
         "data": {
             "root": str(root),
-            "counts": data_meta.get("counts", {"train": train["n"], "val": val["n"]}),
+            "roots": [str(r) for r in roots],
+            "root_meta": [m.get("view_options") for m in metas],
+            "counts": (data_meta.get("counts", {"train": train["n"], "val": val["n"]})
+                       if len(roots) == 1 else {"train": train["n"], "val": val["n"]}),
             "image_size": list(train["image_size"]),
             "layout_seed": data_meta.get("layout_seed"),
             "data_seed": data_meta.get("seed"),

@@ -133,6 +133,11 @@ def test_metrics_on_known_inputs():
     # in range: the 10 m (= max_depth) pixel is left out
     assert m["abs_rel_in_range"] == pytest.approx(0.5 / 3)
     assert m["n_images"] == 1
+    # near (<= 1 m): only the 1 m pixel, read 1.5 m
+    assert m["abs_rel_near"] == pytest.approx(0.5) and m["delta1_near"] == 0.0
+    assert m["n_images_near"] == 1
+    far = depth_metrics(gt[:, 1:] * 1.1, gt[:, 1:])  # nothing within 1 m: not counted
+    assert far["n_images_near"] == 0 and far["abs_rel_near"] == 0.0
 
 
 # ------------------------------------------------------------------------------ shipped weights
@@ -306,3 +311,26 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
                                                             "--out", str(tmp_path / "c.pt")])
     with pytest.raises(ValueError, match="not found"):
         train_depth.main(["--data", str(tmp_path / "none")])
+
+
+def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
+    """--init starts from shipped-format weights; several --data roots train together
+    and each further root is tested under its own name (the close-up fine-tune)."""
+    d1, d2 = tmp_path / "plain", tmp_path / "close"
+    write_datasets(d1, n_train=8, n_val=2, n_test=2, seed=0, image_size=(60, 80), progress=False)
+    write_datasets(d2, n_train=8, n_val=2, n_test=2, seed=1, image_size=(60, 80), progress=False,
+                   goal_absent_frac=0.0, start_frac=0.0, goal_distance=(0.3, 1.0))
+    train_depth = _recipe()
+    start = MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8)))
+    start.save(tmp_path / "start.pt")
+    out = train_depth.main(["--data", str(d1), str(d2), "--init", str(tmp_path / "start.pt"),
+                            "--epochs", "1", "--batch-size", "8", "--n-test-84", "0", "--no-progress",
+                            "--out", str(tmp_path / "ft.pt"), "--run-dir", str(tmp_path / "rf")])
+    assert set(out["metrics"]) == {"test_60x80", "val_60x80", "test_60x80_close"}
+    close = out["metrics"]["test_60x80_close"]
+    assert close["n_images_near"] >= 1 and 0 < close["abs_rel_near"]  # close-ups have near pixels
+    side = json.loads((tmp_path / "ft.json").read_text())
+    assert side["init"] == str(tmp_path / "start.pt") and side["data"]["counts"]["train"] == 16
+    assert side["network"]["widths"] == [8, 8, 8, 8, 8]  # the --init network, not --widths
+    with pytest.raises(ValueError, match="--init"):
+        train_depth.main(["--data", str(d1), "--init", str(tmp_path / "missing.pt")])

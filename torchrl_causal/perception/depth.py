@@ -440,7 +440,8 @@ class MonoDepth(nn.Module):
 # ----------------------------------------------------------------------------- metrics
 
 
-def depth_metrics(pred: torch.Tensor, target: torch.Tensor, *, max_depth: float = 10.0) -> dict:
+def depth_metrics(pred: torch.Tensor, target: torch.Tensor, *, max_depth: float = 10.0,
+                  near_m: float = 1.0) -> dict:
     """Per-image depth metrics, summed over images (divide by the image counts for means).
 
     Valid pixels: target finite and ``> 0`` (targets beyond ``max_depth`` are
@@ -451,7 +452,9 @@ def depth_metrics(pred: torch.Tensor, target: torch.Tensor, *, max_depth: float 
     ``abs_rel_in_range``, ``rmse_in_range``, ``delta1_in_range`` over the
     pixels whose target is below ``max_depth`` only (count
     ``n_images_in_range``): the clipped background is easy and often half of
-    the image.
+    the image; and ``abs_rel_near``, ``delta1_near`` over the pixels within
+    ``near_m`` (default 1 m; count ``n_images_near``): the board seen from
+    the goal point, where the reach rule reads its distance.
 
     Example:
         >>> import torch
@@ -495,6 +498,17 @@ def depth_metrics(pred: torch.Tensor, target: torch.Tensor, *, max_depth: float 
     out["rmse_in_range"] = float(mean_near((pred - target) ** 2).sqrt().sum())
     out["delta1_in_range"] = float(mean_near((ratio < 1.25).double()).sum())
     out["n_images_in_range"] = int(keep_near.sum())
+    close = valid & (target <= near_m)
+    n_close = close.sum((-2, -1))
+    keep_close = n_close > 0
+
+    def mean_close(v):
+        return (torch.where(close, v, torch.zeros_like(v)).sum((-2, -1))
+                / n_close.clamp_min(1))[keep_close]
+
+    out["abs_rel_near"] = float(mean_close((pred - target).abs() / target).sum())
+    out["delta1_near"] = float(mean_close((ratio < 1.25).double()).sum())
+    out["n_images_near"] = int(keep_close.sum())
     return out
 
 
@@ -551,10 +565,12 @@ def evaluate_depth(
 
     Returns:
         ``dict(abs_rel, rmse, log10, delta1, delta2, delta3,
-        abs_rel_in_range, rmse_in_range, delta1_in_range, n_images,
-        image_size, ms_per_frame)``: per-image means over the valid pixels
-        (``*_in_range``: over the pixels with a target below ``max_depth``,
-        see :func:`depth_metrics`);
+        abs_rel_in_range, rmse_in_range, delta1_in_range, abs_rel_near,
+        delta1_near, n_images, n_images_near, image_size, ms_per_frame)``:
+        per-image means over the valid pixels (``*_in_range``: over the pixels
+        with a target below ``max_depth``; ``*_near``: within 1 m, over the
+        ``n_images_near`` images that have such pixels, None if none; see
+        :func:`depth_metrics`);
         ``ms_per_frame`` is the estimator's wall time per frame at this batch
         size (current thread settings).
 
@@ -579,6 +595,7 @@ def evaluate_depth(
         for k, v in depth_metrics(pred, torch.from_numpy(depth), max_depth=max_depth).items():
             total[k] = total.get(k, 0) + v
     n, n_near = total.get("n_images", 0), total.get("n_images_in_range", 0)
+    n_close = total.get("n_images_near", 0)
     if n == 0:
         raise ValueError(f"no frame with valid depth in {npz_path!r}")
     out = {}
@@ -587,9 +604,11 @@ def evaluate_depth(
             continue
         if k.endswith("_in_range"):
             out[k] = v / n_near if n_near else float("nan")
+        elif k.endswith("_near"):
+            out[k] = v / n_close if n_close else None  # no pixel within 1 m
         else:
             out[k] = v / n
-    out.update(n_images=n, image_size=size, ms_per_frame=1000.0 * seconds / max(frames, 1))
+    out.update(n_images=n, n_images_near=n_close, image_size=size, ms_per_frame=1000.0 * seconds / max(frames, 1))
     return out
 
 
