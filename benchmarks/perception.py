@@ -10,6 +10,13 @@ Prints one JSON object per figure (``{"bench": "perception", "figure": ..., ...}
 * ``detector_heldout``: precision / recall (the thesis's 0.7 rule, IoU >= 0.5)
   and mAP50 on views of held-out layouts, beside the thesis's 0.943 / 0.902;
 * ``depth_heldout``: abs rel, RMSE and delta < 1.25 on the same views;
+* ``detector_camera_path`` / ``depth_camera_path``: the same figures on views
+  that went through the Tello camera path (``VideoPath``: rendered at 960x720,
+  exposure / blur / noise jitter, H.264 at the emulator's settings, cropped and
+  resized as ``TelloEnv`` does) and on plain renders of the same poses, near
+  (goal views 0.25-1 m from the board) and far (1-9 m), at 240x320 and 84x84;
+  depth adds ``abs_rel_near`` / ``delta1_near`` over the pixels within 1 m
+  (targets: P/R >= 0.943 / 0.902; near delta1 >= 0.9, abs rel <= 0.10);
 * ``feature_agreement``: per variable, the share of held-out 84x84 views where
   the RGB-only stack's category equals the ground-truth stack's (target >= 0.9);
 * ``policy_flight`` (with ``--run``): greedy success of a trained run's policy
@@ -104,6 +111,37 @@ def bench_accuracy(views_by_size: dict, detector, depth) -> None:
              delta1_in_range=round(dep["delta1_in_range"], 4))
 
 
+def bench_camera_path(detector, depth, n: int, seed: int) -> None:
+    """Plain vs camera-path views, near vs far, at both sizes (see the docstring)."""
+    from torchrl_causal.perception.dataset import evaluate_detector, render_views
+    from torchrl_causal.perception.depth import evaluate_depth
+    from torchrl_causal.perception.video_path import VideoPath
+
+    ranges = {"near": (0.25, 1.0), "far": (1.0, 9.0)}
+    for size in ((240, 320), (84, 84)):
+        for rng_name, dist in ranges.items():
+            for path in ("plain", "video"):
+                views = list(render_views(
+                    "test", n, seed=seed + 7, image_size=size, goal_absent_frac=0.0,
+                    start_frac=0.0, goal_distance=dist,
+                    video_path=VideoPath(seed=seed) if path == "video" else None))
+                det = evaluate_detector(detector, views)
+                emit("detector_camera_path", image_size=list(size), distance=rng_name,
+                     distance_m=list(dist), frames=path, n_views=det["n_views"],
+                     n_positives=det["n_positives"], precision=round(det["precision"], 4),
+                     recall=round(det["recall"], 4), map50=round(det["map50"], 4),
+                     thesis_precision=THESIS_DETECTOR["precision"],
+                     thesis_recall=THESIS_DETECTOR["recall"])
+                dep = evaluate_depth(depth, views)
+                near = {k: (round(dep[k], 4) if dep[k] is not None else None)
+                        for k in ("abs_rel_near", "delta1_near")}
+                emit("depth_camera_path", image_size=list(size), distance=rng_name,
+                     distance_m=list(dist), frames=path, n_views=dep["n_images"],
+                     abs_rel=round(dep["abs_rel"], 4), delta1=round(dep["delta1"], 4),
+                     abs_rel_in_range=round(dep["abs_rel_in_range"], 4),
+                     n_views_near=dep["n_images_near"], **near)
+
+
 def bench_agreement(views, detector, depth) -> dict:
     from torchrl_causal.perception import horizontal_fov
     from torchrl_causal.perception.agreement import feature_agreement
@@ -152,7 +190,9 @@ def main(argv=None) -> None:
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--noise", action="store_true", help="policy flight with move/turn noise")
     p.add_argument("--skip", nargs="*", default=(),
-                   choices=("costs", "accuracy", "agreement", "flight"))
+                   choices=("costs", "accuracy", "camera_path", "agreement", "flight"))
+    p.add_argument("--path-views", type=int, default=100,
+                   help="views per (size, distance, plain/video) set of the camera-path figures")
     a = p.parse_args(argv)
     if a.views < 16:
         p.error(f"--views must be >= 16, got {a.views}")
@@ -173,6 +213,8 @@ def main(argv=None) -> None:
         bench_costs(views, detector, depth, a.repeats)
     if "accuracy" not in a.skip:
         bench_accuracy(views, detector, depth)
+    if "camera_path" not in a.skip:
+        bench_camera_path(detector, depth, a.path_views, a.seed)
     if "agreement" not in a.skip:
         bench_agreement(views[(84, 84)], detector, depth)
     if a.run is not None and "flight" not in a.skip:

@@ -93,6 +93,16 @@ def parse_args(argv=None):
                         "centre's height (default 1.0, the field guide's board)")
     p.add_argument("--reach-full-width", action="store_true",
                    help="ReachRule: the goal's box must span the image's width")
+    p.add_argument("--reach-offset", type=float, default=None,
+                   help="ReachRule: the drone's estimated distance to the goal point (board "
+                        "plane from depth, board edges, --board-width, --goal-standoff) must "
+                        "be <= this (m; e.g. 0.2); default: not checked")
+    p.add_argument("--board-width", type=float, default=None,
+                   help="the board's width (m) for --reach-offset (default: the emulated "
+                        "layout's; 1.0 on a real drone, the field guide's board)")
+    p.add_argument("--goal-standoff", type=float, default=None,
+                   help="the goal point in front of the board's face (m) for --reach-offset "
+                        "(default: the emulated layout's; 0.45 on a real drone)")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
     a = p.parse_args(argv)
@@ -135,9 +145,11 @@ def parse_args(argv=None):
     return a
 
 
-def reach_rule(args, goal_height=None):
+def reach_rule(args, goal_height=None, layout=None):
     """The :class:`~torchrl_causal.envs.ReachRule` of the ``--reach-*`` options
-    (``goal_height``: the emulated layout's, for ``--reach-height``)."""
+    (``goal_height``: the emulated layout's, for ``--reach-height``; ``layout``:
+    the emulated one, whose board size and goal standoff ``--reach-offset`` uses
+    unless ``--board-width`` / ``--goal-standoff`` are given)."""
     from torchrl_causal.envs import ReachRule
 
     kw = {}
@@ -149,6 +161,12 @@ def reach_rule(args, goal_height=None):
             goal_height if goal_height is not None else 1.0)
     if args.reach_full_width:
         kw["full_width"] = True
+    if args.reach_offset is not None:
+        kw["max_goal_offset"] = args.reach_offset
+        kw["board_width"] = args.board_width if args.board_width is not None else (
+            float(layout.goal_size[0]) if layout is not None else 1.0)
+        kw["goal_standoff"] = args.goal_standoff if args.goal_standoff is not None else (
+            float(layout.goal_standoff) if layout is not None else 0.45)
     return ReachRule(**kw)
 
 
@@ -332,8 +350,10 @@ def main(argv=None) -> dict:
 
             def new_episode(env):
                 emu.reset_world()
-                if args.reach_height is not None:  # this layout's goal height
-                    env.reach_rule = reach_rule(args, float(emu.env.layout.goal_point()[2]))
+                lay = emu.env.layout  # this layout's goal height and board
+                env.reach_rule = reach_rule(
+                    args, float(lay.goal_point()[2]) if args.reach_height is not None else None,
+                    layout=lay)
 
             base, tenv = make_tello_env(args, cfg, tello, detector, depth, new_episode,
                                         layout=emu.env.layout)

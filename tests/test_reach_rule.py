@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -43,7 +44,8 @@ def test_each_condition_vetoes_on_its_own():
     ({"max_distance": 0.0}, "max_distance"), ({"max_distance": math.inf}, "max_distance"),
     ({"min_distance": 0.9}, "min_distance"), ({"max_angle": 120}, "max_angle"),
     ({"goal_height": -1.0}, "goal_height"), ({"max_height_offset": 0.0}, "max_height_offset"),
-    ({"full_width": 1}, "full_width"),
+    ({"full_width": 1}, "full_width"), ({"max_goal_offset": 0.0}, "max_goal_offset"),
+    ({"board_width": -1.0}, "board_width"), ({"goal_standoff": math.nan}, "goal_standoff"),
 ])
 def test_bad_options_are_named(kw, name):
     with pytest.raises(ValueError, match=f"ReachRule.{name}"):
@@ -59,3 +61,103 @@ def test_tello_env_takes_a_rule_and_refuses_anything_else():
     with pytest.raises(ValueError, match="reach_rule"):
         TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=depth,
                  verbose=False, reach_rule={"max_distance": 0.4})
+
+
+# ------------------------------------------------------------------ goal-point offset
+
+def _view(env, x, y, yaw_offset_deg=0.0):
+    """Depth and goal box of the real MuJoCo scene from (x, y) at the goal's height,
+    looking at the board's centre (+ ``yaw_offset_deg``)."""
+    lay = env.layout
+    gc = lay.goal_center
+    yaw = math.atan2(gc[1] - y, gc[0] - x) + math.radians(yaw_offset_deg)
+    env._executor.set_pose(x, y, lay.goal_point()[2], yaw)
+    obs = env._observe(False, False)
+    return obs["depth"].numpy(), obs["goal_box"].tolist()
+
+
+def test_goal_offset_reads_where_the_goal_point_is_on_real_renders():
+    """Square on, seen at an angle, with the board's edges in view or filling it:
+    the estimate of the drone's distance to the goal point is within 5 cm of the truth
+    whenever an edge is in view, where range and bearing alone mistake places 0.4-0.7 m
+    beside the goal point for arrivals (the random layouts' turned boards)."""
+    from torchrl_causal.envs import DroneNavEnv
+    from torchrl_causal.envs.layouts import RandomLayoutGenerator
+    from torchrl_causal.envs.reach import goal_point_offset
+
+    lay = RandomLayoutGenerator("heldout", seed=0).layout(7)
+    env = DroneNavEnv(lay, image_size=(84, 84), seed=0)
+    env.reset()
+    try:
+        gp, gc, n = lay.goal_point(), np.asarray(lay.goal_center), lay.goal_normal()
+        rule = ReachRule(max_goal_offset=0.2, board_width=float(lay.goal_size[0]),
+                         goal_standoff=float(lay.goal_standoff))
+        old = ReachRule()
+        rng = np.random.default_rng(0)
+        errors, fooled, kept_off = [], 0, 0
+        for _ in range(24):
+            phi = math.radians(rng.uniform(-60, 60))
+            r = rng.uniform(0.3, 0.9)
+            base = math.atan2(n[1], n[0]) + phi
+            x, y = gc[0] + r * math.cos(base), gc[1] + r * math.sin(base)
+            depth, box = _view(env, x, y, rng.uniform(-10, 10))
+            est, facing = goal_point_offset(depth, box, env.hfov_deg,
+                                            goal_standoff=lay.goal_standoff,
+                                            board_width=lay.goal_size[0])
+            true = math.hypot(x - gp[0], y - gp[1])
+            if box[0] > 0 or box[2] < 84:  # an edge in view
+                errors.append(abs(est - true))
+            if true > 0.35:
+                meas = dict(in_sight=True, distance=float(np.median(depth)), angle=0.0, box=box,
+                            width=84, altitude=1.0)
+                fooled += old(**meas)
+                kept_off += not rule(**meas, goal_offset=est)
+        assert len(errors) >= 8 and max(errors) < 0.05, errors
+        assert kept_off >= fooled  # never fooled where the plain rule is not ...
+        # ... and square on at the goal point: ~0
+        depth, box = _view(env, gp[0], gp[1])
+        assert goal_point_offset(depth, box, env.hfov_deg, goal_standoff=lay.goal_standoff,
+                                 board_width=lay.goal_size[0])[0] < 0.03
+    finally:
+        env.close()
+
+
+def test_offset_rule_needs_an_estimate_and_reads_the_swept_move():
+    from torchrl_causal.envs.reach import goal_point_offset
+
+    rule = ReachRule(max_goal_offset=0.2)
+    assert rule(**_m(), goal_offset=0.1)
+    assert not rule(**_m(), goal_offset=0.25)
+    assert not rule(**_m())  # no estimate: never fires
+    assert not rule(**_m(), goal_offset=float("nan"))
+    past = np.full((84, 84), 0.1)  # 0.225 m past the goal point after a 0.25 m forward move
+    assert goal_point_offset(past, FULL, 60.0)[0] == pytest.approx(0.225, abs=1e-6)
+    assert goal_point_offset(past, FULL, 60.0, moved=(0.0, 0.25))[0] == pytest.approx(0.0, abs=1e-6)
+    assert math.isnan(goal_point_offset(past, (0, 0, 2, 84), 60.0)[0])  # too narrow a box
+
+
+def test_tello_env_declares_reached_by_the_offset_rule():
+    """A TelloEnv whose depth reads the board square on at the goal point fires the
+    offset rule; one whose board shows its left edge 0.5 m aside does not."""
+    from torchrl_causal.perception.goal import GoalDetector
+
+    class Box(GoalDetector):
+        def __init__(self, box):
+            self.box = box
+
+        def detect(self, pixels, depth=None, **_):
+            return torch.tensor([[self.box]]), torch.tensor([[0.9]])
+
+    rule = ReachRule(max_goal_offset=0.2, board_width=1.0, goal_standoff=0.45)
+    at_goal = TelloEnv(dry_run=True, detector=Box([0.0, 0.0, 84.0, 84.0]), verbose=False,
+                       depth_estimator=lambda p: torch.full(p.shape[:3], 0.345),
+                       reach_rule=rule)
+    m = at_goal.measure_frame(np.zeros((720, 960, 3), np.uint8))
+    assert m["reached"] and m["goal_offset"] < 0.05
+    at_goal.close()
+    beside = TelloEnv(dry_run=True, detector=Box([40.0, 0.0, 84.0, 84.0]), verbose=False,
+                      depth_estimator=lambda p: torch.full(p.shape[:3], 0.345),
+                      reach_rule=rule)
+    m = beside.measure_frame(np.zeros((720, 960, 3), np.uint8))
+    assert not m["reached"] and m["goal_offset"] > 0.3  # the board's centre is off to the right
+    beside.close()

@@ -70,6 +70,8 @@ def test_bad_options_are_named_before_any_flight(capsys):
     (["--host", "192.168.10.1", "--video-size", "480x640", "--dry-run"], "the option is the emulator's"),
     (["--reach-distance", "-0.3"], "ReachRule.max_distance"),
     (["--reach-height", "0"], "ReachRule.max_height_offset"),
+    (["--reach-offset", "0"], "ReachRule.max_goal_offset"),
+    (["--reach-offset", "0.2", "--board-width", "-1"], "ReachRule.board_width"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -90,3 +92,18 @@ def test_the_reach_rule_options_build_the_rule():
         (0.45, 0.12, 1.0)
     plain = fly_tello.parse_args(["--run", str(POLICY), "--no-height-check"]).reach_rule
     assert plain.goal_height is None
+
+
+def test_reach_offset_takes_the_emulated_layouts_board():
+    from torchrl_causal.envs.layouts import RandomLayoutGenerator
+
+    args = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2"])
+    rule = args.reach_rule
+    assert (rule.max_goal_offset, rule.board_width, rule.goal_standoff) == (0.2, 1.0, 0.45)
+    lay = RandomLayoutGenerator("heldout", seed=0).layout(3)
+    per_layout = fly_tello.reach_rule(args, goal_height=1.2, layout=lay)
+    assert per_layout.board_width == float(lay.goal_size[0]) != 1.0
+    assert per_layout.goal_height == 1.2
+    fixed = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2",
+                                  "--board-width", "0.8"])
+    assert fly_tello.reach_rule(fixed, layout=lay).board_width == 0.8  # the user's board wins

@@ -19,7 +19,15 @@ step, from what it measures:
   the image no longer shows a vertical offset, the height sensor does;
 * ``full_width``: near the goal point the 1.0 m board fills the image's width
   (both sides of the box at the image border); a box with one side inside the
-  image means the drone is beside the board.
+  image means the drone is beside the board;
+* ``max_goal_offset``: the drone's estimated horizontal distance to the goal
+  point (:func:`goal_point_offset`): the board's plane fitted to the depth
+  inside the box gives the board's facing; the board's centre is the midpoint of
+  its two side edges, or one edge plus half the ``board_width``, when an edge
+  is in view (the box centre's ray when the board fills the view); the goal
+  point lies ``goal_standoff`` in front of it. Range and bearing alone cannot
+  tell the goal point from a place beside it when the board is seen at an angle
+  (random layouts turn it up to 30 deg), this can.
 
 The thresholds were chosen by measurement (docs/tello.rst, "An arrival rule
 that agrees with the simulator").
@@ -37,7 +45,102 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-__all__ = ["ReachRule"]
+import numpy as np
+
+__all__ = ["ReachRule", "goal_point_offset"]
+
+
+def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.45,
+                      board_width: float | None = 1.0, camera_offset: float = 0.125,
+                      moved=(0.0, 0.0)):
+    """The drone's horizontal distance to the goal point, seen from one depth map.
+
+    Fits the board's plane (a line in the camera's horizontal plane) to the
+    per-column median z-depth inside ``box``; the board's centre is the midpoint
+    of its two side edges when both are in view, one edge plus ``board_width``/2
+    along the board when one is (``board_width`` None: the box centre's ray),
+    else (the board fills the view's width) where the box centre's ray meets the
+    plane. The goal point is ``goal_standoff`` in front of that centre, along
+    the plane's normal; the drone's centre is ``camera_offset`` behind the camera.
+    With ``moved``, the distance is to the segment the drone's centre has just
+    flown (as the simulator judges a pass through the goal sphere), not to its
+    end only: 0.25 m moves can step over a 0.2 m sphere's centre.
+
+    Args:
+        depth: z-depth map ``[H, W]`` (m; array or tensor).
+        box: the goal's box ``(x0, y0, x1, y1)`` in pixels.
+        hfov_deg: the camera's horizontal field of view (deg).
+        goal_standoff: goal point in front of the board's face (m).
+        board_width: the board's width (m), or None.
+        camera_offset: camera in front of the drone's centre (m).
+        moved: the last move of the drone's centre, ``(right, forward)`` in the
+            camera's current frame (m); ``(0, 0)``: the point itself.
+
+    Returns:
+        ``(offset_m, facing_deg)``: the distance, and the angle between the
+        camera's axis and the board's normal (0: square on); ``(nan, nan)`` when
+        the box holds too few valid columns.
+
+    Example:
+        >>> import numpy as np
+        >>> depth = np.full((84, 84), 0.345)   # the board square on, filling the view, 0.345 m away
+        >>> off, facing = goal_point_offset(depth, (0, 0, 84, 84), hfov_deg=60.0)
+        >>> round(off, 3), round(facing, 1)    # |0.345 + 0.125 - 0.45|: 2 cm behind the goal point
+        (0.02, 0.0)
+        >>> depth = np.full((84, 84), 0.2)     # 0.145 m past it, having just flown 0.25 m forward
+        >>> round(goal_point_offset(depth, (0, 0, 84, 84), 60.0)[0], 3)
+        0.125
+        >>> round(goal_point_offset(depth, (0, 0, 84, 84), 60.0, moved=(0.0, 0.25))[0], 3)
+        0.0
+    """
+    d_ = np.asarray(depth, dtype=np.float64)
+    H, W = d_.shape
+    x0, y0, x1, y1 = (int(round(float(v))) for v in box)
+    x0, x1 = max(0, x0), min(W, x1)
+    y0, y1 = max(0, y0), min(H, y1)
+    nan = (float("nan"), float("nan"))
+    if x1 - x0 < 3 or y1 - y0 < 1:
+        return nan
+    f = (W / 2) / math.tan(math.radians(hfov_deg) / 2)
+    cols = np.arange(x0, x1)
+    block = d_[y0:y1, x0:x1]
+    block = np.where(np.isfinite(block) & (block > 0), block, np.nan)
+    with np.errstate(all="ignore"):
+        z = np.nanmedian(block, axis=0) if np.isfinite(block).any() else np.full(len(cols), np.nan)
+    ok = np.isfinite(z)
+    if ok.sum() < 3:
+        return nan
+    cols, z = cols[ok], z[ok]
+    pts = np.stack([z * (cols + 0.5 - W / 2) / f, z], 1)
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c)
+    along = vt[0] if vt[0][0] >= 0 else -vt[0]  # along the board, towards the image's right
+    normal = np.array([-along[1], along[0]])
+    if normal[1] > 0:  # towards the camera
+        normal = -normal
+
+    def on_board(col):  # where the ray through a pixel column meets the board's line
+        ray = np.array([(col - W / 2) / f, 1.0])
+        t, _ = np.linalg.solve(np.stack([ray, -along], 1), c)
+        return t * ray
+
+    left_in, right_in = x0 > 0, x1 < W
+    if left_in and right_in:
+        centre = (on_board(x0) + on_board(x1)) / 2
+    elif left_in and board_width is not None:
+        centre = on_board(x0) + along * board_width / 2
+    elif right_in and board_width is not None:
+        centre = on_board(x1) - along * board_width / 2
+    else:
+        centre = on_board((x0 + x1) / 2)
+    goal = centre + goal_standoff * normal
+    end = np.array([0.0, -camera_offset])
+    start = end - np.asarray(moved, dtype=np.float64)
+    seg = end - start
+    t = float(np.clip((goal - start) @ seg / max(float(seg @ seg), 1e-12), 0.0, 1.0))
+    offset = float(np.linalg.norm(goal - (start + t * seg)))
+    facing = float(math.degrees(math.atan2(-normal[0], -normal[1]))) + 0.0  # no -0.0
+    return offset, facing
 
 
 def _finite(name, value, low=None, high=None, strict_low=False):
@@ -67,6 +170,13 @@ class ReachRule:
         max_height_offset: allowed ``|altitude - goal_height|`` (m, 0.01-1).
         full_width: the goal's box must touch both side borders of the image
             (the board fills the view's width).
+        max_goal_offset: the estimated horizontal distance (m) from the drone's
+            centre to the goal point (:func:`goal_point_offset`) must be at most
+            this; ``None`` (default): not checked.
+        board_width: the board's width (m; the thesis board: 1.0), for
+            ``max_goal_offset``.
+        goal_standoff: the goal point in front of the board's face (m; the
+            thesis scene and the random layouts: 0.45), for ``max_goal_offset``.
 
     Example:
         >>> ReachRule().max_distance, ReachRule().goal_height
@@ -83,6 +193,9 @@ class ReachRule:
     goal_height: float | None = None
     max_height_offset: float = 0.15
     full_width: bool = False
+    max_goal_offset: float | None = None
+    board_width: float = 1.0
+    goal_standoff: float = 0.45
 
     def __post_init__(self):
         _finite("max_distance", self.max_distance, 0.05, 3.0, strict_low=True)
@@ -93,10 +206,23 @@ class ReachRule:
         _finite("max_height_offset", self.max_height_offset, 0.01, 1.0)
         if not isinstance(self.full_width, bool):
             raise ValueError(f"ReachRule.full_width must be a bool, got {self.full_width!r}")
+        if self.max_goal_offset is not None:
+            _finite("max_goal_offset", self.max_goal_offset, 0.02, 2.0)
+        _finite("board_width", self.board_width, 0.1, 5.0)
+        _finite("goal_standoff", self.goal_standoff, 0.0, 3.0)
+
+    def goal_offset(self, depth, box, hfov_deg: float, camera_offset: float = 0.125,
+                    moved=(0.0, 0.0)) -> float:
+        """:func:`goal_point_offset` with this rule's board (the distance only)."""
+        return goal_point_offset(depth, box, hfov_deg, goal_standoff=self.goal_standoff,
+                                 board_width=self.board_width, camera_offset=camera_offset,
+                                 moved=moved)[0]
 
     def __call__(self, *, in_sight: bool, distance: float, angle: float, box, width: int,
-                 altitude: float) -> bool:
-        """Whether the drone has arrived, from one step's measurements."""
+                 altitude: float, goal_offset: float | None = None) -> bool:
+        """Whether the drone has arrived, from one step's measurements
+        (``goal_offset``: :meth:`goal_offset`'s estimate, needed when
+        ``max_goal_offset`` is set; a missing or non-finite one never fires)."""
         if not in_sight or not math.isfinite(distance):
             return False
         if not self.min_distance <= distance <= self.max_distance:
@@ -110,6 +236,10 @@ class ReachRule:
             x0, _, x1, _ = (float(v) for v in box)
             if x0 > 0.5 or x1 < width - 0.5:
                 return False
+        if self.max_goal_offset is not None and not (
+                goal_offset is not None and math.isfinite(goal_offset)
+                and goal_offset <= self.max_goal_offset):
+            return False
         return True
 
     def to_dict(self) -> dict:
