@@ -191,6 +191,10 @@ def main(argv=None) -> None:
     p.add_argument("--noise", action="store_true", help="policy flight with move/turn noise")
     p.add_argument("--skip", nargs="*", default=(),
                    choices=("costs", "accuracy", "camera_path", "agreement", "flight"))
+    p.add_argument("--depth-weights", default=None,
+                   help="MonoDepth weights to measure (default: the shipped ones)")
+    p.add_argument("--detector-weights", default=None,
+                   help="YOLO goal-detector weights to measure (default: the shipped ones)")
     p.add_argument("--path-views", type=int, default=100,
                    help="views per (size, distance, plain/video) set of the camera-path figures")
     a = p.parse_args(argv)
@@ -205,8 +209,11 @@ def main(argv=None) -> None:
     from torchrl_causal.perception.depth import MonoDepth
     from torchrl_causal.perception.yolo import YoloGoalDetector
 
-    detector, depth = YoloGoalDetector(), MonoDepth.load()
-    emit("setup", threads=torch.get_num_threads(), views=a.views, seed=a.seed)
+    detector = (YoloGoalDetector() if a.detector_weights is None
+                else YoloGoalDetector(weights=a.detector_weights))
+    depth = MonoDepth.load(a.depth_weights)
+    emit("setup", threads=torch.get_num_threads(), views=a.views, seed=a.seed,
+         depth_weights=a.depth_weights or "shipped", detector_weights=a.detector_weights or "shipped")
     views = {size: list(render_views("test", a.views, seed=a.seed, image_size=size))
              for size in ((240, 320), (84, 84))}
     if "costs" not in a.skip:

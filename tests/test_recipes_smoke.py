@@ -152,6 +152,16 @@ def test_resume_continues_exactly(tmp_path):
     for key in ("frames", "episodes", "updates", "n_relearns"):
         assert sa[key] == sb[key], key
 
+    # stopped during its final evaluation (trained, summary not yet written): resuming
+    # only evaluates -- the same final figures, no frame trained again
+    episodes_before = (full / "episodes.csv").read_text()
+    (full / "summary.json").unlink()
+    _run([*args, f"output_dir={full}", "checkpoint.resume=true"])
+    again = json.loads((full / "summary.json").read_text())
+    assert again["final_eval"] == sa["final_eval"]
+    assert again["frames"] == sa["frames"] and again["updates"] == sa["updates"]
+    assert (full / "episodes.csv").read_text() == episodes_before
+
     # reproduce.py's aggregation over real run folders (two seeds of one variant)
     import shutil
 

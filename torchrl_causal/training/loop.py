@@ -559,12 +559,17 @@ class DQNLoop:
 
     def _load_checkpoint(self) -> None:
         ckpt = torch.load(self.paths["checkpoint"], weights_only=False)
-        if ckpt.get("buffer_dir") is None:
-            raise ValueError(
+        finished = ckpt["loop"]["frames"] >= self.config.total_frames
+        if ckpt.get("buffer_dir") is None and not finished:
+            raise ValueError(  # pragma: no cover - a bufferless checkpoint is always final
                 f"Cannot resume from {self.paths['checkpoint']}: the run finished and its final "
                 "checkpoint keeps no replay buffer (LoopConfig.keep_final_buffer=False); start a "
                 "new run, or set keep_final_buffer=True to extend finished runs later"
             )
+        # a run that finished training but was stopped before its final evaluation
+        # ended (its summary never written): everything but the buffer is restored,
+        # and run() goes straight to the final evaluation
+        self._resumed_finished = ckpt.get("buffer_dir") is None
         was_overlap = ckpt.get("config", {}).get("overlap", False)
         if was_overlap != self.config.overlap:
             raise ValueError(
@@ -578,7 +583,8 @@ class DQNLoop:
         self.optimizer.load_state_dict(ckpt["optim"])
         self.updater.counter = ckpt["updater_counter"]
         self.explorer.load_state_dict(ckpt["explorer"])
-        self.replay_buffer.loads(self.paths["checkpoint"].parent / ckpt["buffer_dir"])
+        if ckpt.get("buffer_dir") is not None:
+            self.replay_buffer.loads(self.paths["checkpoint"].parent / ckpt["buffer_dir"])
         if self.hook is not None:
             self.hook.load_state_dict(ckpt["hook"])
         if ckpt["collector"] is not None:
@@ -902,9 +908,11 @@ class DQNLoop:
             self._rb_rng.manual_seed(cfg.seed * 1_000_003 + 12_345)
             self._synced_at = None
             self._sync_acting()
+        self._resumed_finished = False
         if resume:
             self._load_checkpoint()
-            self._restart_collector()
+            if not self._resumed_finished:
+                self._restart_collector()
         hook = self.hook
         pbar = None
         if cfg.progress:
@@ -918,7 +926,9 @@ class DQNLoop:
         self._last_reward = float("nan")
         stopped_early = False
         try:
-            if cfg.overlap:
+            if self._resumed_finished:
+                pass  # trained already: only the final evaluation is left
+            elif cfg.overlap:
                 stopped_early = self._run_overlapped(collector, pbar)
             else:
                 stopped_early = self._run_serial(collector, pbar)
