@@ -96,7 +96,8 @@ def parse_args(argv=None):
     p.add_argument("--reach-offset", type=float, default=None,
                    help="ReachRule: the drone's estimated distance to the goal point (board "
                         "plane from depth, board edges, --board-width, --goal-standoff) must "
-                        "be <= this (m; e.g. 0.2); default: not checked")
+                        "be <= this (m; e.g. 0.2); default: not checked. With it, "
+                        "--reach-distance defaults to 1.0")
     p.add_argument("--board-width", type=float, default=None,
                    help="the board's width (m) for --reach-offset (default: the emulated "
                         "layout's; 1.0 on a real drone, the field guide's board)")
@@ -163,6 +164,8 @@ def reach_rule(args, goal_height=None, layout=None):
         kw["full_width"] = True
     if args.reach_offset is not None:
         kw["max_goal_offset"] = args.reach_offset
+        if args.reach_distance is None:  # the offset decides; the range only bounds it
+            kw["max_distance"] = 1.0
         kw["board_width"] = args.board_width if args.board_width is not None else (
             float(layout.goal_size[0]) if layout is not None else 1.0)
         kw["goal_standoff"] = args.goal_standoff if args.goal_standoff is not None else (

@@ -100,6 +100,7 @@ def test_reach_offset_takes_the_emulated_layouts_board():
     args = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2"])
     rule = args.reach_rule
     assert (rule.max_goal_offset, rule.board_width, rule.goal_standoff) == (0.2, 1.0, 0.45)
+    assert rule.max_distance == 1.0  # the offset decides; the camera's range only bounds it
     lay = RandomLayoutGenerator("heldout", seed=0).layout(3)
     per_layout = fly_tello.reach_rule(args, goal_height=1.2, layout=lay)
     assert per_layout.board_width == float(lay.goal_size[0]) != 1.0
