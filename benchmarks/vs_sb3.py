@@ -7,7 +7,8 @@ wrapped around the very TorchRL env the recipe builds) -- with the same
 Q-network (two dense ReLU layers of 256 on the features divided by the same
 per-feature scale, a linear head), Huber loss, plain (not double) DQN targets,
 no reward scaling, Adam (same learning rate and eps), gradient-norm clip 10,
-replay ratio (``updates_per_frame`` -> SB3 ``train_freq``), batch size, replay
+replay ratio (``updates_per_frame`` 0.25 -> SB3 ``train_freq`` 4; the loop collects
+batches of 4 frames, then takes its one gradient step, as SB3 does), batch size, replay
 size, ``learning_starts``, hard target sync (SB3 counts it in env steps: the
 recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration.
 ``DQNLoop`` runs as the recipe ``dqn_features`` with ``features.image=false``
@@ -63,6 +64,9 @@ def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, o
             "variant=dqn_features", "features.image=false", "features.inputs=[causal_features]",
             "features.history=0", "loss.double_dqn=false", "loss.reward_scale=1.0",
             "loss.function=huber", "optim.name=adam", "loss.updates_per_frame=0.25",
+            # SB3 collects train_freq = 1 / replay ratio steps, then takes one gradient
+            # step: the loop collects batches of that size, then optimises the same
+            "collector.frames_per_batch=4",
             f"collector.total_frames={frames}", f"seed={seed}", "threads=1", "progress=false",
             f"eval.interval_frames={eval_every}", f"eval.episodes={eval_episodes}",
             f"eval.final_episodes={eval_episodes}", "eval.keep_best=false",
