@@ -221,8 +221,12 @@ def test_finished_run_keeps_no_second_copy_of_the_buffer(tmp_path):
     ckpt = tmp_path / "lean" / "checkpoints"
     assert torch.load(ckpt / "last.pt", weights_only=False)["buffer_dir"] is None
     assert not [p for p in ckpt.iterdir() if p.name.startswith("buffer_")]
+    # the same budget: only the final evaluation is left, which resuming runs
+    again = _gridnav_loop(tmp_path / "lean", 600, **opts).run(resume=True)
+    assert again["frames"] == 600 and "final_eval" in again
+    # a larger one would need the buffer it did not keep
     with pytest.raises(ValueError, match="finished.*keep_final_buffer"):
-        _gridnav_loop(tmp_path / "lean", 600, **opts).run(resume=True)
+        _gridnav_loop(tmp_path / "lean", 800, **opts).run(resume=True)
     # keep_final_buffer: the finished run can be extended with a larger budget
     _gridnav_loop(tmp_path / "kept", 600, keep_final_buffer=True, **opts).run()
     state = torch.load(tmp_path / "kept" / "checkpoints" / "last.pt", weights_only=False)

@@ -561,7 +561,7 @@ class DQNLoop:
         ckpt = torch.load(self.paths["checkpoint"], weights_only=False)
         finished = ckpt["loop"]["frames"] >= self.config.total_frames
         if ckpt.get("buffer_dir") is None and not finished:
-            raise ValueError(  # pragma: no cover - a bufferless checkpoint is always final
+            raise ValueError(  # a finished run extended to a larger budget
                 f"Cannot resume from {self.paths['checkpoint']}: the run finished and its final "
                 "checkpoint keeps no replay buffer (LoopConfig.keep_final_buffer=False); start a "
                 "new run, or set keep_final_buffer=True to extend finished runs later"
