@@ -161,3 +161,22 @@ def test_tello_env_declares_reached_by_the_offset_rule():
     m = beside.measure_frame(np.zeros((720, 960, 3), np.uint8))
     assert not m["reached"] and m["goal_offset"] > 0.3  # the board's centre is off to the right
     beside.close()
+
+
+def test_offset_is_three_dimensional_with_a_goal_height():
+    """With a goal height, the offset includes the height sensor's difference and the
+    vertical part of the last move (the simulator's sphere is 3-D), and replaces the
+    separate height check."""
+    from torchrl_causal.envs.reach import goal_point_offset
+
+    at = np.full((84, 84), 0.345)  # horizontally at the goal point
+    assert goal_point_offset(at, FULL, 60.0, height_offset=0.15)[0] == pytest.approx(0.152, abs=2e-3)
+    # 0.1 m above the goal point after a 0.25 m ascent: the climb passed through it
+    assert goal_point_offset(at, FULL, 60.0, moved=(0.0, 0.0, 0.25),
+                             height_offset=-0.1)[0] == pytest.approx(0.02, abs=2e-3)
+    rule = ReachRule(max_goal_offset=0.2, goal_height=1.0, max_height_offset=0.12)
+    assert rule.goal_offset(at, FULL, 60.0, altitude=1.15) == pytest.approx(0.152, abs=2e-3)
+    assert rule.goal_offset(at, FULL, 60.0, altitude=1.25) > 0.2
+    # 0.15 m above: outside max_height_offset, inside the sphere -> the offset decides
+    assert rule(**_m(altitude=1.15), goal_offset=0.152)
+    assert not rule(**_m(altitude=1.15), goal_offset=0.25)

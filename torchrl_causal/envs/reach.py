@@ -52,7 +52,7 @@ __all__ = ["ReachRule", "goal_point_offset"]
 
 def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.45,
                       board_width: float | None = 1.0, camera_offset: float = 0.125,
-                      moved=(0.0, 0.0)):
+                      moved=(0.0, 0.0), height_offset: float = 0.0):
     """The drone's horizontal distance to the goal point, seen from one depth map.
 
     Fits the board's plane (a line in the camera's horizontal plane) to the
@@ -64,7 +64,9 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
     the plane's normal; the drone's centre is ``camera_offset`` behind the camera.
     With ``moved``, the distance is to the segment the drone's centre has just
     flown (as the simulator judges a pass through the goal sphere), not to its
-    end only: 0.25 m moves can step over a 0.2 m sphere's centre.
+    end only: 0.25 m moves can step over a 0.2 m sphere's centre. With
+    ``height_offset`` (the goal point's height above the drone's centre, from a
+    height sensor) the distance is 3-D, as the simulator's sphere is.
 
     Args:
         depth: z-depth map ``[H, W]`` (m; array or tensor).
@@ -73,8 +75,10 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
         goal_standoff: goal point in front of the board's face (m).
         board_width: the board's width (m), or None.
         camera_offset: camera in front of the drone's centre (m).
-        moved: the last move of the drone's centre, ``(right, forward)`` in the
-            camera's current frame (m); ``(0, 0)``: the point itself.
+        moved: the last move of the drone's centre, ``(right, forward)`` or
+            ``(right, forward, up)`` in the camera's current frame (m);
+            ``(0, 0)``: the point itself.
+        height_offset: the goal point's height above the drone's centre (m).
 
     Returns:
         ``(offset_m, facing_deg)``: the distance, and the angle between the
@@ -133,9 +137,11 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
         centre = on_board(x1) - along * board_width / 2
     else:
         centre = on_board((x0 + x1) / 2)
-    goal = centre + goal_standoff * normal
-    end = np.array([0.0, -camera_offset])
-    start = end - np.asarray(moved, dtype=np.float64)
+    goal = np.append(centre + goal_standoff * normal, float(height_offset))
+    end = np.array([0.0, -camera_offset, 0.0])
+    mv = np.zeros(3)
+    mv[: len(moved)] = np.asarray(moved, dtype=np.float64)
+    start = end - mv
     seg = end - start
     t = float(np.clip((goal - start) @ seg / max(float(seg @ seg), 1e-12), 0.0, 1.0))
     offset = float(np.linalg.norm(goal - (start + t * seg)))
@@ -170,9 +176,11 @@ class ReachRule:
         max_height_offset: allowed ``|altitude - goal_height|`` (m, 0.01-1).
         full_width: the goal's box must touch both side borders of the image
             (the board fills the view's width).
-        max_goal_offset: the estimated horizontal distance (m) from the drone's
-            centre to the goal point (:func:`goal_point_offset`) must be at most
-            this; ``None`` (default): not checked.
+        max_goal_offset: the estimated distance (m) from the drone's centre
+            (the segment of its last move) to the goal point
+            (:func:`goal_point_offset`) must be at most this; with a
+            ``goal_height`` it is 3-D (the height sensor's difference included)
+            and replaces ``max_height_offset``; ``None`` (default): not checked.
         board_width: the board's width (m; the thesis board: 1.0), for
             ``max_goal_offset``.
         goal_standoff: the goal point in front of the board's face (m; the
@@ -212,11 +220,14 @@ class ReachRule:
         _finite("goal_standoff", self.goal_standoff, 0.0, 3.0)
 
     def goal_offset(self, depth, box, hfov_deg: float, camera_offset: float = 0.125,
-                    moved=(0.0, 0.0)) -> float:
-        """:func:`goal_point_offset` with this rule's board (the distance only)."""
+                    moved=(0.0, 0.0), altitude: float | None = None) -> float:
+        """:func:`goal_point_offset` with this rule's board (the distance only); 3-D
+        when the rule has a ``goal_height`` and ``altitude`` is given."""
+        dz = (self.goal_height - altitude
+              if self.goal_height is not None and altitude is not None else 0.0)
         return goal_point_offset(depth, box, hfov_deg, goal_standoff=self.goal_standoff,
                                  board_width=self.board_width, camera_offset=camera_offset,
-                                 moved=moved)[0]
+                                 moved=moved, height_offset=dz)[0]
 
     def __call__(self, *, in_sight: bool, distance: float, angle: float, box, width: int,
                  altitude: float, goal_offset: float | None = None) -> bool:
@@ -229,8 +240,9 @@ class ReachRule:
             return False
         if abs(angle) > self.max_angle:
             return False
-        if self.goal_height is not None and abs(altitude - self.goal_height) > \
-                self.max_height_offset:
+        # with an offset estimate the height is inside it (3-D, as the sphere)
+        if self.goal_height is not None and self.max_goal_offset is None and \
+                abs(altitude - self.goal_height) > self.max_height_offset:
             return False
         if self.full_width:
             x0, _, x1, _ = (float(v) for v in box)

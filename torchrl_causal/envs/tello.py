@@ -365,7 +365,7 @@ class TelloEnv(EnvBase):
         self._last_command = time.monotonic()
         self._odom = (0.0, 0.0, 0.0, 0.0)  # x fwd, y left, z, yaw (rad) in the take-off frame
         self._steps = 0
-        self._last_move = (0.0, 0.0)
+        self._last_move = (0.0, 0.0, 0.0)
         self._prev_distance: float | None = None
         self._keepalive_stop = threading.Event()
         self._keepalive_thread = None
@@ -577,18 +577,18 @@ class TelloEnv(EnvBase):
                "box": [float(v) for v in meas.box[0].tolist()]}
         rule = self.reach_rule
         alt = altitude if altitude is not None else (rule.goal_height or 0.0)
-        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"])
+        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"], alt)
         out["reached"] = rule(in_sight=in_sight, distance=out["distance"], angle=out["angle"],
                               box=out["box"], width=self.image_size[1], altitude=alt,
                               goal_offset=out["goal_offset"])
         return out
 
-    def _goal_offset(self, in_sight: bool, depth, box) -> float | None:
+    def _goal_offset(self, in_sight: bool, depth, box, altitude: float) -> float | None:
         """The reach rule's goal-point offset estimate (only when the rule uses it)."""
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,
-                                           moved=self._last_move)
+                                           moved=self._last_move, altitude=altitude)
 
     def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
         pixels = self.preprocess(self._fresh_frame(frame_since))
@@ -605,7 +605,7 @@ class TelloEnv(EnvBase):
         reached = not crashed and self.reach_rule(
             in_sight=in_sight, distance=dist, angle=angle, box=box,
             width=self.image_size[1], altitude=alt,
-            goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box))
+            goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box, alt))
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
@@ -627,7 +627,7 @@ class TelloEnv(EnvBase):
             self._takeoff()
             self._steps = 0
             self._prev_distance = None
-            self._last_move = (0.0, 0.0)
+            self._last_move = (0.0, 0.0, 0.0)
             obs = self._observe(self._current_frame())
         except BaseException as e:
             self.land(reason=f"exception in reset: {e!r}")
@@ -649,12 +649,13 @@ class TelloEnv(EnvBase):
         c, sn = math.cos(yaw), math.sin(yaw)
         return (x + c * fwd - sn * left, y + sn * fwd + c * left, z + up, yaw + dyaw)
 
-    def _move_in_camera_frame(self, action: int) -> tuple[float, float]:
-        """The horizontal move of ``action``, ``(right, forward)`` in m (the reach rule's
+    def _move_in_camera_frame(self, action: int) -> tuple[float, float, float]:
+        """The move of ``action``, ``(right, forward, up)`` in m (the reach rule's
         swept segment)."""
         name, s = ACTION_NAMES[action], self.step_size
         return ({"right": s, "left": -s}.get(name, 0.0),
-                {"forward": s, "backward": -s}.get(name, 0.0))
+                {"forward": s, "backward": -s}.get(name, 0.0),
+                {"ascend": s, "descend": -s}.get(name, 0.0))
 
     def _inside(self, pose) -> bool:
         x, y, z, _ = pose
@@ -672,7 +673,7 @@ class TelloEnv(EnvBase):
                 raise TelloError("step() while landed: call reset() first")
             self._steps += 1
             target = self._predicted(action)
-            self._last_move = (0.0, 0.0)  # until the move is flown
+            self._last_move = (0.0, 0.0, 0.0)  # until the move is flown
             crashed = out_of_bounds = False
             since = self._current_frame()
             if not self._inside(target):
