@@ -91,7 +91,7 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
         >>> off, facing = goal_point_offset(depth, (0, 0, 84, 84), hfov_deg=60.0)
         >>> round(off, 3), round(facing, 1)    # |0.345 + 0.125 - 0.45|: 2 cm behind the goal point
         (0.02, 0.0)
-        >>> depth = np.full((84, 84), 0.2)     # 0.145 m past it, having just flown 0.25 m forward
+        >>> depth = np.full((84, 84), 0.2)     # 0.125 m past it, having just flown 0.25 m forward
         >>> round(goal_point_offset(depth, (0, 0, 84, 84), 60.0)[0], 3)
         0.125
         >>> round(goal_point_offset(depth, (0, 0, 84, 84), 60.0, moved=(0.0, 0.25))[0], 3)
@@ -129,14 +129,17 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
         return t * ray
 
     left_in, right_in = x0 > 0, x1 < W
-    if left_in and right_in:
-        centre = (on_board(x0) + on_board(x1)) / 2
-    elif left_in and board_width is not None:
-        centre = on_board(x0) + along * board_width / 2
-    elif right_in and board_width is not None:
-        centre = on_board(x1) - along * board_width / 2
-    else:
-        centre = on_board((x0 + x1) / 2)
+    try:
+        if left_in and right_in:
+            centre = (on_board(x0) + on_board(x1)) / 2
+        elif left_in and board_width is not None:
+            centre = on_board(x0) + along * board_width / 2
+        elif right_in and board_width is not None:
+            centre = on_board(x1) - along * board_width / 2
+        else:
+            centre = on_board((x0 + x1) / 2)
+    except np.linalg.LinAlgError:  # a ray along the board's line: seen edge-on
+        return nan
     goal = np.append(centre + goal_standoff * normal, float(height_offset))
     end = np.array([0.0, -camera_offset, 0.0])
     mv = np.zeros(3)
