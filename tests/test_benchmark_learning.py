@@ -7,7 +7,6 @@ numbers; checks :func:`aggregate` exactly and the ``--from-runs`` command line.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -17,13 +16,12 @@ from pathlib import Path
 
 import pytest
 from scipy import stats
+from _scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "learning.py"
 
-_spec = importlib.util.spec_from_file_location("bench_learning", SCRIPT)
-bl = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bl)
+bl = load_script("benchmarks/learning.py", "bench_learning")
 
 EP_COLS = ("episode,frames,reward,length,success,crash,out_of_bounds,epsilon,n_relearns,"
            "gate_frac_explored,gate_frac_consulted,gate_frac_vetoed,gate_frac_replaced")

@@ -6,20 +6,16 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
-from pathlib import Path
 
 import pytest
+from _scripts import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("stable_baselines3") is None,
                                 reason="stable-baselines3 not installed (the bench extra)")
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("vs_sb3", ROOT / "benchmarks" / "vs_sb3.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/vs_sb3.py")
 
 
 def test_same_network_and_settings_on_both_sides(tmp_path, monkeypatch):

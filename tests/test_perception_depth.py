@@ -2,7 +2,6 @@
 held-out renders, the EstimatedDepth transform in TorchRL (env, specs, replay buffer),
 bad input and bad weights files, and the training recipe end to end (tiny data, exact resume)."""
 
-import importlib.util
 import json
 import math
 import os
@@ -32,6 +31,7 @@ from torchrl_causal.perception.depth import (
     working_size,
 )
 from torchrl_causal.transforms import DepthSections, EstimatedDepth
+from _scripts import load_script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -278,10 +278,7 @@ def test_missing_and_corrupt_weights(tmp_path):
 
 
 def _recipe():
-    spec = importlib.util.spec_from_file_location("train_depth", REPO / "recipes" / "train_depth.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("recipes/train_depth.py")
 
 
 def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):

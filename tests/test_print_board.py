@@ -2,24 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from torchrl_causal.envs.scene import board_face_image, helipad_image
-
-ROOT = Path(__file__).resolve().parents[1]
+from _scripts import load_script
 
 
 def _recipe():
-    spec = importlib.util.spec_from_file_location("print_board", ROOT / "recipes" / "print_board.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("recipes/print_board.py")
 
 
 def test_board_png_has_true_size_and_a4_pages_cover_it(tmp_path):
