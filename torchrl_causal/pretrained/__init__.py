@@ -16,6 +16,8 @@ Example:
     >>> "thesis" in available()
     True
     >>> from torchrl_causal.envs import DroneNavEnv
+    >>> import torch
+    >>> _ = torch.manual_seed(0)  # the V2 gate redraws vetoed actions at random
     >>> policy, env = load_policy("thesis", base_env=DroneNavEnv(seed=0))
     >>> td = env.rollout(200, policy, break_when_any_done=True)
     >>> bool(td["next", "reached"][-1])
