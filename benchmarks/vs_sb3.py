@@ -10,7 +10,9 @@ no reward scaling, Adam (same learning rate and eps), gradient-norm clip 10,
 replay ratio (``updates_per_frame`` 0.25 -> SB3 ``train_freq`` 4; the loop collects
 batches of 4 frames, then takes its one gradient step, as SB3 does), batch size, replay
 size, ``learning_starts``, hard target sync (SB3 counts it in env steps: the
-recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration.
+recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration
+(uniformly random actions until ``learning_starts`` in both: SB3's rule, the loop's
+``collector.init_random_frames``; the epsilon schedule counts those frames in both).
 ``DQNLoop`` runs as the recipe ``dqn_features`` with ``features.image=false``
 (no CBN, no gate).
 
@@ -58,9 +60,11 @@ def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, o
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    from omegaconf import OmegaConf
+
     GlobalHydra.instance().clear()
     with initialize_config_dir(version_base=None, config_dir=str(ROOT / "recipes" / "config")):
-        return compose("base", [
+        cfg = compose("base", [
             "variant=dqn_features", "features.image=false", "features.inputs=[causal_features]",
             "features.history=0", "loss.double_dqn=false", "loss.reward_scale=1.0",
             "loss.function=huber", "optim.name=adam", "loss.updates_per_frame=0.25",
@@ -73,6 +77,11 @@ def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, o
             "env.eval_layouts=[thesis]", "outputs.videos=0", "outputs.draw_cbns=false",
             "checkpoint.interval_frames=0", "logger.backend=none", f"output_dir={out}",
             *extra])
+    # SB3 acts uniformly at random until learning_starts (no Q-network call, the epsilon
+    # schedule still counting those steps); the loop does the same with init_random_frames
+    if not any(e.startswith("collector.init_random_frames=") for e in extra):
+        OmegaConf.update(cfg, "collector.init_random_frames", int(cfg.loss.learning_starts))
+    return cfg
 
 
 def run_dqnloop(cfg) -> dict:

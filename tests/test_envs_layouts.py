@@ -118,6 +118,30 @@ def test_random_env_resets_draw_layouts_and_heldout_split():
     pinned.close()
 
 
+def test_fixed_goal_size_layouts():
+    """``goal_size`` fixes every board (a printed one) and keeps the layouts valid and split."""
+    from torchrl_causal.envs import DroneNavEnv
+
+    drawn = {RandomLayoutGenerator("train", seed=0).layout(i).goal_size for i in range(6)}
+    assert len(drawn) == 6  # drawn sizes differ
+    for split in ("train", "heldout"):
+        gen = RandomLayoutGenerator(split, seed=0, goal_size=(1.0, 0.8))
+        for i in range(6):
+            lay = gen.layout(i)
+            assert lay.goal_size == (1.0, 0.8)
+            assert gen.split_of(lay) == split and free_path_exists(lay)
+    env = DroneNavEnv("random", goal_size=(0.6, 0.5), seed=0)
+    env.reset()
+    assert env.layout.goal_size == (0.6, 0.5)
+    # the board in the MuJoCo model has that size (half extents of its box geom)
+    gid = mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_GEOM, "goal_board")
+    assert gid >= 0
+    np.testing.assert_allclose(sorted(env.model.geom_size[gid])[1:], [0.25, 0.3], atol=1e-6)
+    env.close()
+    with pytest.raises(ValueError, match="goal_size applies to layout='random'"):
+        DroneNavEnv("thesis", goal_size=(1.0, 0.8))
+
+
 def test_helipad_texture_in_memory():
     img = helipad_image(64)
     assert img.shape == (64, 64, 3) and img.dtype == np.uint8
@@ -129,7 +153,8 @@ def test_helipad_texture_in_memory():
 
 @pytest.mark.parametrize(
     "kwargs,name",
-    [({"split": "validation"}, "split"), ({"seed": -1}, "seed"), ({"max_obstacles": -1}, "max_obstacles")],
+    [({"split": "validation"}, "split"), ({"seed": -1}, "seed"), ({"max_obstacles": -1}, "max_obstacles"),
+     ({"goal_size": (3.0, 0.8)}, "goal_size"), ({"goal_size": "big"}, "goal_size")],
 )
 def test_generator_bad_options(kwargs, name):
     with pytest.raises(ValueError, match=name):

@@ -252,6 +252,7 @@ def test_evaluate_detector_ground_truth_is_perfect():
         (dict(split="train", n=1, seed=0, goal_distance=(2.0, 1.0)), "goal_distance"),
         (dict(split="train", n=1, seed=0, goal_distance=(0.0, 1.0)), "goal_distance"),
         (dict(split="train", n=1, seed=0, goal_distance="near"), "goal_distance"),
+        (dict(split="train", n=1, seed=0, goal_size=(0.1, 0.8)), "goal_size"),
     ],
 )
 def test_bad_options(kwargs, match):

@@ -27,7 +27,13 @@ from ..perception.goal import (  # noqa: E402
     horizontal_fov,
 )
 from .control import KinematicExecutor, PhysicsExecutor, action_deltas  # noqa: E402
-from .layouts import SPLITS, Layout, RandomLayoutGenerator, thesis_layout  # noqa: E402
+from .layouts import (  # noqa: E402
+    SPLITS,
+    Layout,
+    RandomLayoutGenerator,
+    check_goal_size,
+    thesis_layout,
+)
 from .rewards import REWARDS, StepOutcome, make_reward  # noqa: E402
 from .scene import SceneRenderer, build_model  # noqa: E402
 from .specs import navigation_specs  # noqa: E402
@@ -105,6 +111,9 @@ class DroneNavEnv(EnvBase):
             reset from the env's seeded generator).
         n_layouts: draw random layouts from indices ``[0, n_layouts)`` only
             (None: unbounded).
+        goal_size: random layouts only: ``(width, height)`` (m) of every goal
+            board, e.g. the printed board of a real flight, instead of a drawn
+            size (``RandomLayoutGenerator(goal_size=)``). ``None``: drawn.
         execution: ``"kinematic"`` or ``"physics"`` (see
             :mod:`torchrl_causal.envs.control`).
         step_size: translation per move action (m).
@@ -156,6 +165,7 @@ class DroneNavEnv(EnvBase):
         layout_seed: int = 0,
         layout_index: int | None = None,
         n_layouts: int | None = None,
+        goal_size: tuple[float, float] | None = None,
         execution: str = "kinematic",
         step_size: float = 0.25,
         turn_deg: float = 15.0,
@@ -229,6 +239,10 @@ class DroneNavEnv(EnvBase):
             raise ValueError(f"n_layouts must be None or an int >= 1, got {n_layouts!r}")
         if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be None or an int >= 0, got {seed!r}")
+        goal_size = check_goal_size(goal_size)
+        if goal_size is not None and layout != "random":
+            raise ValueError(f"goal_size applies to layout='random' only, got layout={layout!r} "
+                             f"with goal_size={goal_size!r}")
 
         super().__init__(device=device if device is not None else "cpu", batch_size=torch.Size([]))
         self._to_device = self.device.type != "cpu"
@@ -250,7 +264,8 @@ class DroneNavEnv(EnvBase):
         self.layout_index = None if layout_index is None else int(layout_index)
         self.n_layouts = None if n_layouts is None else int(n_layouts)
         self._generator = (
-            RandomLayoutGenerator(split=split, seed=int(layout_seed)) if layout == "random" else None
+            RandomLayoutGenerator(split=split, seed=int(layout_seed), goal_size=goal_size)
+            if layout == "random" else None
         )
         self._layout_cache: OrderedDict[int, Layout] = OrderedDict()
         self.detector = detector if detector is not None else SimGoalDetector(int(goal_min_pixels))

@@ -364,6 +364,21 @@ def _start_is_free(layout: Layout) -> bool:
     return True
 
 
+def check_goal_size(goal_size) -> tuple[float, float] | None:
+    """``None`` or a ``(width, height)`` board size in metres, each in [0.2, 2.0]."""
+    if goal_size is None:
+        return None
+    try:
+        w, h = (float(v) for v in goal_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"goal_size must be (width, height) in metres, got {goal_size!r}") \
+            from None
+    if not (0.2 <= w <= 2.0 and 0.2 <= h <= 2.0):
+        raise ValueError(f"goal_size must be (width, height) with each in [0.2, 2.0] m, "
+                         f"got {goal_size!r}")
+    return (w, h)
+
+
 class RandomLayoutGenerator:
     """Seeded random layouts with disjoint ``train`` / ``heldout`` splits.
 
@@ -384,6 +399,11 @@ class RandomLayoutGenerator:
         max_obstacles: maximum obstacle count.
         heldout_modulus: one layout in ``heldout_modulus`` (by fingerprint) is
             held out.
+        goal_size: ``(width, height)`` (m) of every goal board instead of a
+            drawn one (0.7-1.2 x 0.6-0.9 m), e.g. the printed board a real
+            Tello flies to. The draw consumes the same random numbers, but the
+            board's size enters the fingerprint, so the splits hold other
+            layouts than the default generator's. ``None``: drawn.
 
     Example:
         >>> gen = RandomLayoutGenerator("train", seed=1)
@@ -399,6 +419,7 @@ class RandomLayoutGenerator:
         min_obstacles: int = 1,
         max_obstacles: int = 4,
         heldout_modulus: int = 5,
+        goal_size: tuple[float, float] | None = None,
     ):
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
@@ -416,6 +437,7 @@ class RandomLayoutGenerator:
         self.min_obstacles = int(min_obstacles)
         self.max_obstacles = int(max_obstacles)
         self.heldout_modulus = int(heldout_modulus)
+        self.goal_size = check_goal_size(goal_size)
 
     def split_of(self, layout: Layout) -> str:
         """The split a layout belongs to (by its fingerprint)."""
@@ -447,6 +469,8 @@ class RandomLayoutGenerator:
         z0 = u(0.8, 1.4)
         # goal board near the far wall, facing back towards the start region
         gw, gh = u(0.7, 1.2), u(0.6, 0.9)
+        if self.goal_size is not None:  # drawn all the same: the draws after it do not move
+            gw, gh = self.goal_size
         gz = float(np.clip(u(0.8, 1.5), gh / 2 + 0.1, height - gh / 2 - 0.1))
         gx = arena[2] - u(0.6, 1.5)
         gy = u(arena[1] + 1.0, arena[3] - 1.0)

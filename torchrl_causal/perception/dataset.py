@@ -306,6 +306,7 @@ def render_views(
     start: int = 0,
     goal_distance: Sequence[float] = (0.5, 9.0),
     video_path=None,
+    goal_size: Sequence[float] | None = None,
 ) -> Iterator[View]:
     """Renders ``n`` views of ``split``, lazily (see the module docstring).
 
@@ -336,6 +337,10 @@ def render_views(
             depth and box stay exact (rendered at ``image_size``: the crop keeps
             the vertical field of view, so the two renders show the same view).
             ``image_size`` must not be wider than the stream's aspect.
+        goal_size: ``(width, height)`` (m) of every goal board (e.g. the printed
+            board of a real flight) instead of the layouts' drawn sizes; the
+            layouts then differ from the default ones (see
+            :class:`~torchrl_causal.envs.layouts.RandomLayoutGenerator`).
 
     Yields:
         :class:`View` objects.
@@ -371,6 +376,9 @@ def render_views(
     if not 0 < lo < hi:
         raise ValueError(f"goal_distance must be (low, high) with 0 < low < high, "
                          f"got {goal_distance!r}")
+    from ..envs.layouts import check_goal_size
+
+    goal_size = check_goal_size(goal_size)
     if video_path is not None:
         from .video_path import VideoPath
 
@@ -383,14 +391,14 @@ def render_views(
     return _render(
         split, n, seed, (h, w), layout_seed, goal_absent_frac, start_frac, views_per_layout,
         min_fraction, float(fov_deg), float(max_depth), max_tilt_deg,
-        bool(randomize_appearance), start, (lo, hi), video_path,
+        bool(randomize_appearance), start, (lo, hi), video_path, goal_size,
     )
 
 
 def _render(
     split, n, seed, image_size, layout_seed, absent_frac, start_frac, per_layout,
     min_fraction, fov_deg, max_depth, max_tilt, randomize, start, goal_distance=(0.5, 9.0),
-    video_path=None,
+    video_path=None, goal_size=None,
 ) -> Iterator[View]:
     from ..envs.drone import DroneNavEnv
     from ..envs.scene import SceneRenderer
@@ -402,6 +410,7 @@ def _render(
         "random",
         split=gen_split,
         layout_seed=layout_seed,
+        goal_size=goal_size,
         image_size=image_size,
         fov_deg=fov_deg,
         max_depth=max_depth,
@@ -833,9 +842,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--video-path", action="store_true",
                    help="RGB through the Tello camera path: rendered at 960x720, jitter, "
                         "H.264 at the emulator's settings, cropped/resized to --image-size")
+    p.add_argument("--goal-size", type=float, nargs=2, default=None, metavar=("W", "H"),
+                   help="every goal board this size (m), e.g. 1.0 0.8 for the thesis board "
+                        "(default: the layouts' drawn sizes, 0.7-1.2 x 0.6-0.9 m)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     extra = {}
+    if a.goal_size is not None:
+        extra["goal_size"] = tuple(a.goal_size)
     if a.video_path:
         from .video_path import VideoPath
 

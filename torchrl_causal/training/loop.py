@@ -902,6 +902,9 @@ class DQNLoop:
             init_random_frames=cfg.init_random_frames or None, device=self.device,
             # the policy is feed-forward: the collector must not add env transforms
             auto_register_policy_transforms=False,
+            # episodes are cut by the done flags; trajectory ids are not read (and cost
+            # about 0.15 ms a frame)
+            track_traj_ids=False,
         )
         self._recs = self._records()
         if cfg.overlap:  # a resumed run loads both from its checkpoint
