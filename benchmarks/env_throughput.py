@@ -17,6 +17,7 @@ import os
 import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 os.environ.setdefault("LP_NUM_THREADS", "0")
 
 import numpy as np  # noqa: E402

@@ -54,6 +54,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
 

@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

@@ -19,6 +19,7 @@ import os
 import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 
 
 def main(argv=None) -> dict:

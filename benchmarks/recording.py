@@ -32,6 +32,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -26,6 +26,7 @@ import statistics
 import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 
 import av  # noqa: E402
 import numpy as np  # noqa: E402

@@ -50,6 +50,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
@@ -239,8 +240,11 @@ def main(argv=None) -> list[dict]:
             fps = {"dqnloop": [], "sb3": []}
             starts = min(1000, a.speed_frames // 3)
             for r in range(a.repeats):
+                # eval.episodes=0: the loop's timed part then holds no greedy episodes
+                # (it evaluates once when the budget ends); SB3's timed learn() holds none
                 cfg = recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}",
-                                    [f"loss.learning_starts={starts}", *a.override])
+                                    [f"loss.learning_starts={starts}", "eval.episodes=0",
+                                     *a.override])
                 fps["dqnloop"].append(run_dqnloop(cfg)["fps"])
                 fps["sb3"].append(run_sb3(cfg, 0, 0, 1)["fps"])
             ours, theirs = (statistics.median(fps[k]) for k in ("dqnloop", "sb3"))

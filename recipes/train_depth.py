@@ -64,6 +64,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--epochs", type=int, default=12)
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--loss", choices=("berhu", "log-berhu"), default="berhu",
+                   help="BerHu on depth (m; the shipped weights) or on log depth (relative "
+                        "errors: near pixels weigh as much as far ones)")
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads (1: one CPU core)")
@@ -252,8 +255,9 @@ def main(argv=None) -> dict:
     if a.resume and last.is_file():
         ck = torch.load(last, map_location="cpu", weights_only=False)
         keys = ("data", "epochs", "batch_size", "lr", "seed", "widths", "decoder", "work_height",
-                "limit_train", "init")
-        diff = [k for k in keys if ck["args"].get(k) != vars(a)[k]]
+                "limit_train", "init", "loss")
+        # checkpoints written before --loss existed trained BerHu on depth
+        diff = [k for k in keys if ck["args"].get(k, "berhu" if k == "loss" else None) != vars(a)[k]]
         if diff:
             raise ValueError(f"--resume: {last} was made with other options {diff}; use the same ones")
         net.load_state_dict(ck["net"])
@@ -277,7 +281,7 @@ def main(argv=None) -> dict:
         for s in range(steps_per_epoch):
             idx = perm[s * a.batch_size : (s + 1) * a.batch_size]
             x, y = make_batch(train, idx, g, a.crop_widths, a.lowres_prob)
-            loss = berhu_loss(net(x), y)
+            loss = berhu_loss(net(x), y, log=a.loss == "log-berhu")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -369,6 +373,7 @@ def main(argv=None) -> dict:
         "best_epoch": state["best"]["epoch"],
         "batch_size": a.batch_size,
         "lr": a.lr,
+        "loss": a.loss,
         "work_height": a.work_height,
         "network": dict(net.config),
         "parameters": sum(p.numel() for p in net.parameters()),

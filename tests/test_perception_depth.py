@@ -83,6 +83,30 @@ def test_berhu_values_on_known_inputs():
     assert float(z.detach()) == 0.0 and p.grad is not None
 
 
+def test_berhu_log_weighs_relative_errors():
+    """``log=True``: the loss of a depth map does not depend on its scale, so a near pixel
+    read twice too far costs what a far one read twice too far costs (in metres it is 10x less)."""
+    target = torch.tensor([0.5, 5.0])
+    near_wrong = torch.tensor([1.0, 5.0])   # 0.5 m off at 0.5 m
+    far_wrong = torch.tensor([0.5, 10.0])   # 5 m off at 5 m
+    assert float(berhu_loss(near_wrong, target, log=True)) == pytest.approx(
+        float(berhu_loss(far_wrong, target, log=True)), rel=1e-6)
+    assert float(berhu_loss(near_wrong, target)) < float(berhu_loss(far_wrong, target)) / 5
+    # the value: |log 2| on one pixel of two, c = 0.2 |log 2| -> (log2^2 + c^2) / (2c) / 2
+    e = math.log(2.0)
+    c = 0.2 * e
+    assert float(berhu_loss(near_wrong, target, log=True)) == pytest.approx(
+        (e * e + c * c) / (2 * c) / 2, rel=1e-6)
+    for s in (0.1, 3.0):
+        assert float(berhu_loss(near_wrong * s, target * s, log=True)) == pytest.approx(
+            float(berhu_loss(near_wrong, target, log=True)), rel=1e-5)
+    # invalid targets stay out, predictions at 0 are clamped (finite loss and gradient)
+    p = torch.tensor([0.0, 2.0, 1.0], requires_grad=True)
+    val = berhu_loss(p, torch.tensor([1.0, 2.0, float("nan")]), log=True)
+    val.backward()
+    assert torch.isfinite(val) and torch.isfinite(p.grad).all() and p.grad[2] == 0
+
+
 def test_berhu_gradient_and_bad_input():
     pred = torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
     berhu_loss(pred, torch.ones(3)).backward()
@@ -329,5 +353,15 @@ def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
     side = json.loads((tmp_path / "ft.json").read_text())
     assert side["init"] == str(tmp_path / "start.pt") and side["data"]["counts"]["train"] == 16
     assert side["network"]["widths"] == [8, 8, 8, 8, 8]  # the --init network, not --widths
+    assert side["loss"] == "berhu"
+    # the same fine-tune on log depth (--loss log-berhu) takes other steps from the same start
+    train_depth.main(["--data", str(d1), str(d2), "--init", str(tmp_path / "start.pt"),
+                      "--epochs", "1", "--batch-size", "8", "--n-test-84", "0", "--no-progress",
+                      "--loss", "log-berhu", "--out", str(tmp_path / "ftlog.pt"),
+                      "--run-dir", str(tmp_path / "rl")])
+    assert json.loads((tmp_path / "ftlog.json").read_text())["loss"] == "log-berhu"
+    a, b = MonoDepth.load(tmp_path / "ft.pt"), MonoDepth.load(tmp_path / "ftlog.pt")
+    assert any(not torch.equal(x, y) for x, y in zip(a.net.state_dict().values(),
+                                                     b.net.state_dict().values()))
     with pytest.raises(ValueError, match="--init"):
         train_depth.main(["--data", str(d1), "--init", str(tmp_path / "missing.pt")])

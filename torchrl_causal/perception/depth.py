@@ -92,6 +92,7 @@ def berhu_loss(
     mask: torch.Tensor | None = None,
     *,
     c_frac: float = 0.2,
+    log: bool = False,
 ) -> torch.Tensor:
     """The reverse Huber (BerHu) loss of Laina et al. (2016), mean over valid pixels.
 
@@ -106,6 +107,9 @@ def berhu_loss(
         target: true depth, the same shape.
         mask: optional boolean mask, the same shape.
         c_frac: the threshold as a fraction of the largest absolute error.
+        log: the errors of ``log(depth)`` instead of depth (metres): relative
+            errors, so a pixel 0.5 m away weighs as much as one 5 m away
+            (``pred`` is clamped to >= 1e-3 m first).
 
     Example:
         >>> import torch
@@ -125,6 +129,9 @@ def berhu_loss(
         valid = valid & mask.bool()
     if not bool(valid.any()):
         return pred.sum() * 0.0
+    if log:
+        pred = pred.clamp_min(1e-3).log()
+        target = torch.where(valid, target, torch.ones_like(target)).log()
     err = (pred - torch.where(valid, target, pred))[valid].abs()
     c = (c_frac * err.max()).detach().clamp_min(1e-6)
     loss = torch.where(err <= c, err, (err * err + c * c) / (2 * c))

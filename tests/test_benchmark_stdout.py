@@ -1,0 +1,51 @@
+"""Benchmarks print one JSON object per figure on stdout: TorchRL's log lines go to stderr."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = sorted(p.stem for p in (ROOT / "benchmarks").glob("*.py"))
+
+# load a benchmark as a module (its top level runs, main() does not), then make
+# TorchRL log an INFO line as a training run does (a replay buffer's first write)
+PROBE = """
+import os, runpy, sys
+os.environ.pop("TORCHRL_CONSOLE_STREAM", None)
+sys.path.insert(0, {bench_dir!r})
+runpy.run_path({path!r}, run_name="benchmark_probe")
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+rb = TensorDictReplayBuffer(storage=LazyTensorStorage(4))
+rb.extend(TensorDict(x=torch.zeros(2, 1), batch_size=[2]))
+"""
+
+
+@pytest.mark.parametrize("name", ["learning", "training", "vs_sb3", "gridnav", "recording",
+                                  "features"])
+def test_torchrl_log_lines_stay_off_stdout(name):
+    assert name in BENCHMARKS
+    path = ROOT / "benchmarks" / f"{name}.py"
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE.format(bench_dir=str(path.parent), path=str(path))],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout == ""
+    assert "Initialized LazyTensorStorage" in out.stderr
+
+
+def test_every_benchmark_routes_torchrl_logs_to_stderr():
+    """A benchmark added later must set the stream too, before it imports TorchRL."""
+    for name in BENCHMARKS:
+        text = (ROOT / "benchmarks" / f"{name}.py").read_text()
+        line = 'os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")'
+        assert line in text, name
+        first_import = min((text.find(m) for m in ("import torch", "from torch", "import torchrl",
+                                                    "from torchrl", "import tensordict",
+                                                    "from tensordict") if m in text),
+                           default=len(text))
+        assert text.find(line) < first_import, name
