@@ -67,6 +67,12 @@ def parse_args(argv=None):
     p.add_argument("--perception", default="rgb",
                    help="rgb (shipped YOLOv8 + MonoDepth, default) | sim (emulator ground truth) "
                         "| module:factory returning (detector, depth_estimator)")
+    p.add_argument("--depth-weights", default=None,
+                   help="--perception rgb: MonoDepth weights to use instead of the shipped ones "
+                        "(e.g. a recipes/train_depth.py fine-tune)")
+    p.add_argument("--detector-weights", default=None,
+                   help="--perception rgb: YOLOv8 weights to use instead of the shipped ones "
+                        "(e.g. a recipes/train_detector.py run)")
     p.add_argument("--noise", action="store_true",
                    help="emulator and --compare-sim: move noise 0.05 m, turn noise 3 deg")
     p.add_argument("--out", default=None)
@@ -134,6 +140,15 @@ def parse_args(argv=None):
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
     if a.perception not in ("rgb", "sim") and ":" not in a.perception:
         p.error(f"--perception must be rgb, sim or module:factory, got {a.perception!r}")
+    for opt in ("depth_weights", "detector_weights"):
+        path = getattr(a, opt)
+        if path is None:
+            continue
+        flag = "--" + opt.replace("_", "-")
+        if a.perception != "rgb":
+            p.error(f"{flag} applies to --perception rgb, got --perception {a.perception!r}")
+        if not Path(path).is_file():
+            p.error(f"{flag} {path!r}: no such file")
     if a.no_height_check:
         a.reach_height = None
     try:
@@ -186,14 +201,14 @@ def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
 NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
 
 
-def perception_models(spec: str, emu=None):
-    """``(detector, depth_estimator)`` for ``--perception``: ``rgb`` (the shipped models),
-    ``sim`` (the emulator's ground truth) or ``module:factory``."""
+def perception_models(spec: str, emu=None, depth_weights=None, detector_weights=None):
+    """``(detector, depth_estimator)`` for ``--perception``: ``rgb`` (the shipped models, or
+    the given weights), ``sim`` (the emulator's ground truth) or ``module:factory``."""
     if spec == "rgb":
         from torchrl_causal.perception.depth import MonoDepth
         from torchrl_causal.perception.yolo import YoloGoalDetector
 
-        return YoloGoalDetector(), MonoDepth.load()
+        return YoloGoalDetector(detector_weights), MonoDepth.load(depth_weights)
     if spec == "sim":
         return emu.sim_detector(), emu.sim_depth_estimator()
     mod, _, fn = spec.partition(":")
@@ -319,9 +334,13 @@ def main(argv=None) -> dict:
     summary: dict = {"run": str(run), "target": args.host or "emulator",
                      "episodes": args.episodes, "perception": args.perception,
                      "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}
+    for opt in ("depth_weights", "detector_weights"):
+        if getattr(args, opt, None):
+            summary[opt] = str(getattr(args, opt))
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
-        detector, depth = perception_models(args.perception)
+        detector, depth = perception_models(args.perception, None, args.depth_weights,
+                                            args.detector_weights)
         tello = None
         if not args.dry_run:
             from djitellopy import Tello
@@ -349,7 +368,8 @@ def main(argv=None) -> dict:
                            video_size=args.video_hw, time_scale=args.time_scale,
                            battery_drain_per_min=0.0) as emu:
             tello = emu.client()
-            detector, depth = perception_models(args.perception, emu)
+            detector, depth = perception_models(args.perception, emu, args.depth_weights,
+                                                args.detector_weights)
 
             def new_episode(env):
                 emu.reset_world()

@@ -64,6 +64,30 @@ def test_bad_options_are_named_before_any_flight(capsys):
     assert "not a run folder" in capsys.readouterr().err
 
 
+def test_rgb_perception_takes_other_weights(tmp_path, capsys):
+    """--depth-weights / --detector-weights swap the shipped models (a fine-tune); a missing
+    file or another perception is named before take-off."""
+    from torchrl_causal.perception.depth import FCRN, MonoDepth
+
+    small = tmp_path / "depth.pt"
+    MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8))).save(small)
+    args = fly_tello.parse_args(["--run", str(POLICY), "--depth-weights", str(small)])
+    detector, depth = fly_tello.perception_models(args.perception, None, args.depth_weights,
+                                                  args.detector_weights)
+    assert tuple(depth.net.config["widths"]) == (8, 8, 8, 8, 8)
+    assert type(detector).__name__ == "YoloGoalDetector"
+    _, shipped = fly_tello.perception_models("rgb")
+    assert tuple(shipped.net.config["widths"]) != (8, 8, 8, 8, 8)
+    for argv, message in [
+        (["--depth-weights", str(tmp_path / "none.pt")], "--depth-weights"),
+        (["--detector-weights", str(tmp_path / "none.pt")], "no such file"),
+        (["--perception", "sim", "--depth-weights", str(small)], "applies to --perception rgb"),
+    ]:
+        with pytest.raises(SystemExit):
+            fly_tello.main(["--run", str(POLICY), *argv])
+        assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv,message", [
     (["--video-size", "100x100"], "a Tello streams 960x720"),
     (["--video-size", "1080x1440"], "a Tello streams 960x720"),
