@@ -66,7 +66,9 @@ def parse_args(argv=None):
     p.add_argument("--yes", action="store_true", help="skip the real-drone confirmation prompt")
     p.add_argument("--perception", default="rgb",
                    help="rgb (shipped YOLOv8 + MonoDepth, default) | sim (emulator ground truth) "
-                        "| module:factory returning (detector, depth_estimator)")
+                        "| sim-depth (the RGB detector, the emulator's depth) | sim-detector "
+                        "(the emulator's detector, MonoDepth): which model an error comes "
+                        "from | module:factory returning (detector, depth_estimator)")
     p.add_argument("--depth-weights", default=None,
                    help="--perception rgb: MonoDepth weights to use instead of the shipped ones "
                         "(e.g. a recipes/train_depth.py fine-tune)")
@@ -138,15 +140,18 @@ def parse_args(argv=None):
         a.out = a.out or str(Path("outputs") / "tello" / "generalist")
     if not (Path(a.run) / "config.yaml").is_file():
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
-    if a.perception not in ("rgb", "sim") and ":" not in a.perception:
-        p.error(f"--perception must be rgb, sim or module:factory, got {a.perception!r}")
+    if a.perception not in PERCEPTIONS and ":" not in a.perception:
+        p.error(f"--perception must be one of {', '.join(PERCEPTIONS)} or module:factory, "
+                f"got {a.perception!r}")
     for opt in ("depth_weights", "detector_weights"):
         path = getattr(a, opt)
         if path is None:
             continue
         flag = "--" + opt.replace("_", "-")
-        if a.perception != "rgb":
-            p.error(f"{flag} applies to --perception rgb, got --perception {a.perception!r}")
+        model = "depth" if opt == "depth_weights" else "detector"
+        if a.perception not in ("rgb", f"sim-{'detector' if model == 'depth' else 'depth'}"):
+            p.error(f"{flag} applies where the {model} is the RGB model (--perception rgb), "
+                    f"got --perception {a.perception!r}")
         if not Path(path).is_file():
             p.error(f"{flag} {path!r}: no such file")
     if a.no_height_check:
@@ -155,9 +160,9 @@ def parse_args(argv=None):
         a.reach_rule = reach_rule(a)
     except ValueError as e:
         p.error(f"--reach-* options: {e}")
-    if a.host is not None and a.perception == "sim":
-        p.error("--perception sim exists only in the emulator: a real drone needs RGB-only "
-                "perception (--perception rgb)")
+    if a.host is not None and a.perception.startswith("sim"):
+        p.error(f"--perception {a.perception} exists only in the emulator: a real drone needs "
+                "RGB-only perception (--perception rgb)")
     return a
 
 
@@ -199,18 +204,23 @@ def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
 
 
 NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
+#: ``--perception`` choices besides ``module:factory`` (the ``sim*`` ones: emulator only).
+PERCEPTIONS = ("rgb", "sim", "sim-depth", "sim-detector")
 
 
 def perception_models(spec: str, emu=None, depth_weights=None, detector_weights=None):
     """``(detector, depth_estimator)`` for ``--perception``: ``rgb`` (the shipped models, or
-    the given weights), ``sim`` (the emulator's ground truth) or ``module:factory``."""
-    if spec == "rgb":
+    the given weights), ``sim`` (the emulator's ground truth), ``sim-depth`` / ``sim-detector``
+    (one of each: which model an error comes from) or ``module:factory``."""
+    if spec in PERCEPTIONS:
         from torchrl_causal.perception.depth import MonoDepth
         from torchrl_causal.perception.yolo import YoloGoalDetector
 
-        return YoloGoalDetector(detector_weights), MonoDepth.load(depth_weights)
-    if spec == "sim":
-        return emu.sim_detector(), emu.sim_depth_estimator()
+        detector = emu.sim_detector() if spec in ("sim", "sim-detector") \
+            else YoloGoalDetector(detector_weights)
+        depth = emu.sim_depth_estimator() if spec in ("sim", "sim-depth") \
+            else MonoDepth.load(depth_weights)
+        return detector, depth
     mod, _, fn = spec.partition(":")
     return getattr(importlib.import_module(mod), fn)()
 

@@ -20,6 +20,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import av
 import pandas as pd
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 POLICY = ROOT / "torchrl_causal" / "pretrained" / "policies" / "thesis"
@@ -55,7 +56,8 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
 def test_bad_options_are_named_before_any_flight(capsys):
     with pytest.raises(SystemExit):
         fly_tello.main(["--run", str(POLICY), "--perception", "lidar"])
-    assert "--perception must be rgb, sim or module:factory" in capsys.readouterr().err
+    assert "--perception must be one of rgb, sim, sim-depth, sim-detector or module:factory" \
+        in capsys.readouterr().err
     with pytest.raises(SystemExit):
         fly_tello.main(["--run", str(POLICY), "--host", "192.168.10.1", "--perception", "sim"])
     assert "exists only in the emulator" in capsys.readouterr().err
@@ -81,11 +83,35 @@ def test_rgb_perception_takes_other_weights(tmp_path, capsys):
     for argv, message in [
         (["--depth-weights", str(tmp_path / "none.pt")], "--depth-weights"),
         (["--detector-weights", str(tmp_path / "none.pt")], "no such file"),
-        (["--perception", "sim", "--depth-weights", str(small)], "applies to --perception rgb"),
+        (["--perception", "sim", "--depth-weights", str(small)], "applies where the depth is"),
+        (["--perception", "sim-depth", "--depth-weights", str(small)], "applies where the depth"),
+        (["--host", "192.168.10.1", "--perception", "sim-depth"], "exists only in the emulator"),
     ]:
         with pytest.raises(SystemExit):
             fly_tello.main(["--run", str(POLICY), *argv])
         assert message in capsys.readouterr().err
+
+
+def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
+    """sim-depth: the RGB detector with the emulator's depth; sim-detector: the emulator's
+    detector with MonoDepth (the given weights) -- to tell which model an error comes from."""
+    from torchrl_causal.envs.tello_emulator import TelloEmulator
+    from torchrl_causal.perception.depth import FCRN, MonoDepth
+    from torchrl_causal.perception.yolo import YoloGoalDetector
+
+    small = tmp_path / "depth.pt"
+    MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8))).save(small)
+    with TelloEmulator(fps=5, time_scale=20.0, video_size=(240, 320)) as emu:
+        det, depth = fly_tello.perception_models("sim-depth", emu)
+        assert isinstance(det, YoloGoalDetector) and not isinstance(depth, MonoDepth)
+        d = depth(torch.zeros(1, 60, 80, 3, dtype=torch.uint8))  # the emulator's true depth
+        assert d.shape == (1, 60, 80) and torch.isfinite(d).all() and (d > 0).all()
+        det, depth = fly_tello.perception_models("sim-detector", emu, depth_weights=str(small))
+        assert not isinstance(det, YoloGoalDetector) and isinstance(depth, MonoDepth)
+        assert tuple(depth.net.config["widths"]) == (8, 8, 8, 8, 8)
+    args = fly_tello.parse_args(["--run", str(POLICY), "--perception", "sim-detector",
+                                 "--depth-weights", str(small)])
+    assert args.depth_weights == str(small)
 
 
 @pytest.mark.parametrize("argv,message", [
