@@ -143,13 +143,11 @@ def parse_args(argv=None):
     if a.perception not in PERCEPTIONS and ":" not in a.perception:
         p.error(f"--perception must be one of {', '.join(PERCEPTIONS)} or module:factory, "
                 f"got {a.perception!r}")
-    for opt in ("depth_weights", "detector_weights"):
-        path = getattr(a, opt)
+    for flag, model, perceptions in WEIGHT_OPTIONS:
+        path = getattr(a, flag[2:].replace("-", "_"))
         if path is None:
             continue
-        flag = "--" + opt.replace("_", "-")
-        model = "depth" if opt == "depth_weights" else "detector"
-        if a.perception not in ("rgb", f"sim-{'detector' if model == 'depth' else 'depth'}"):
+        if a.perception not in perceptions:
             p.error(f"{flag} applies where the {model} is the RGB model (--perception rgb), "
                     f"got --perception {a.perception!r}")
         if not Path(path).is_file():
@@ -206,6 +204,9 @@ def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
 NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
 #: ``--perception`` choices besides ``module:factory`` (the ``sim*`` ones: emulator only).
 PERCEPTIONS = ("rgb", "sim", "sim-depth", "sim-detector")
+#: ``--*-weights`` options: the model they replace and the perceptions where it is the RGB one.
+WEIGHT_OPTIONS = (("--depth-weights", "depth", ("rgb", "sim-detector")),
+                  ("--detector-weights", "detector", ("rgb", "sim-depth")))
 
 
 def perception_models(spec: str, emu=None, depth_weights=None, detector_weights=None):
