@@ -12,70 +12,19 @@ outside it (``fire_outside``); the threshold with the largest difference
 
     python benchmarks/reach_calibration.py [--poses 200] [--depth-weights W.pt]
 
-This is how ``TelloEnv``'s 0.45 m default compares with a depth model's own
-best threshold (docs/tello.rst, "Which model, measured").
+The sweep is :func:`torchrl_causal.envs.reach.calibrate_reach_distance`, the
+one ``recipes/train_depth.py`` stores in the weights it writes and ``TelloEnv``
+uses by default (docs/tello.rst, "A depth model needs its own threshold").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
-
-
-def sweep(poses: int, seed: int, depth_weights=None) -> list[dict]:
-    """One row per pose: distance to the goal point, goal in sight, measured goal distance."""
-    import numpy as np
-    import torch
-    from tensordict import TensorDict
-
-    from torchrl_causal.envs import DroneNavEnv
-    from torchrl_causal.perception.dataset import _quat
-    from torchrl_causal.perception.depth import MonoDepth
-    from torchrl_causal.transforms import make_causal_transforms
-
-    env = DroneNavEnv("thesis", image_size=(240, 320), seed=0)
-    env.reset()
-    lay = env.layout
-    gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
-    normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
-    side = np.array([-normal[1], normal[0]])
-    stack = make_causal_transforms(env, perception="rgb",
-                                   depth_estimator=MonoDepth.load(depth_weights))
-    rng = np.random.default_rng(seed)
-    qa = env.ids.qpos_adr
-    rows = []
-    for _ in range(poses):
-        ahead, lat = rng.uniform(-0.35, 0.45), rng.uniform(-0.25, 0.25)
-        yaw = math.degrees(math.atan2(-normal[1], -normal[0])) + rng.uniform(-15, 15)
-        xy = gp[:2] + ahead * normal + lat * side
-        env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2])
-        env.data.qpos[qa + 3:qa + 7] = _quat(yaw, 0.0, 0.0)
-        obs = env._observe(False, False)
-        with torch.no_grad():
-            td = stack(TensorDict(dict(obs.items()), []).unsqueeze(0))[0]
-        rows.append({"to_goal_point_m": float(math.hypot(ahead, lat)),
-                     "in_sight": bool(td["goal_in_sight"].item()),
-                     "measured_m": float(td["goal_distance"].item())})
-    env.close()
-    return rows
-
-
-def thresholds(rows, grid) -> list[dict]:
-    inside = [r for r in rows if r["in_sight"] and r["to_goal_point_m"] <= 0.2]
-    outside = [r for r in rows if r["in_sight"] and r["to_goal_point_m"] > 0.2]
-    out = []
-    for t in grid:
-        fin = sum(r["measured_m"] <= t for r in inside) / max(1, len(inside))
-        fout = sum(r["measured_m"] <= t for r in outside) / max(1, len(outside))
-        out.append({"threshold_m": round(t, 3), "fire_inside": round(fin, 3),
-                    "fire_outside": round(fout, 3), "youden": round(fin - fout, 3),
-                    "n_inside": len(inside), "n_outside": len(outside)})
-    return out
 
 
 def main(argv=None) -> list[dict]:
@@ -84,23 +33,30 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--depth-weights", default=None, help="MonoDepth weights (default: shipped)")
     a = p.parse_args(argv)
-    if a.poses < 1:
-        p.error(f"--poses must be >= 1, got {a.poses}")
+    if a.poses < 10:
+        p.error(f"--poses must be >= 10, got {a.poses}")
     if a.depth_weights is not None and not os.path.isfile(a.depth_weights):
         p.error(f"--depth-weights {a.depth_weights!r}: no such file")
     import torch
 
     torch.set_num_threads(1)
-    rows = thresholds(sweep(a.poses, a.seed, a.depth_weights),
-                      [x / 100 for x in range(28, 52)])
+    from torchrl_causal.envs.reach import calibrate_reach_distance
+    from torchrl_causal.perception.depth import MonoDepth
+
+    est = MonoDepth.load(a.depth_weights)
+    cal = calibrate_reach_distance(est, poses=a.poses, seed=a.seed)
+    name = a.depth_weights or "shipped"
+    counts = {"n_inside": cal["n_inside"], "n_outside": cal["n_outside"]}
+    rows = [{"bench": "reach_calibration", "figure": "threshold", "depth_weights": name,
+             **r, **counts} for r in cal["thresholds"]]
+    best = next(r for r in cal["thresholds"] if r["threshold_m"] == cal["max_distance"])
+    stored = est.reach_distance
+    rows.append({"bench": "reach_calibration", "figure": "best", "depth_weights": name,
+                 "poses": a.poses, "seed": a.seed, **best, **counts,
+                 "stored_max_distance": stored})
     for r in rows:
-        print(json.dumps({"bench": "reach_calibration", "figure": "threshold",
-                          "depth_weights": a.depth_weights or "shipped", **r}), flush=True)
-    best = max(rows, key=lambda r: (r["youden"], -r["threshold_m"]))
-    best = {"bench": "reach_calibration", "figure": "best", "depth_weights":
-            a.depth_weights or "shipped", "poses": a.poses, "seed": a.seed, **best}
-    print(json.dumps(best), flush=True)
-    return rows + [best]
+        print(json.dumps(r), flush=True)
+    return rows
 
 
 if __name__ == "__main__":

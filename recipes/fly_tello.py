@@ -89,7 +89,8 @@ def parse_args(argv=None):
                    help="s to wait after a move before observing (default 0 emulator, 0.5 Tello)")
     p.add_argument("--reach-distance", type=float, default=None,
                    help="TelloEnv's ReachRule: goal in sight within this measured distance (m) "
-                        "of the camera (default: ReachRule's; see docs/tello.rst)")
+                        "of the camera (default: the depth model's calibrated range, stored "
+                        "with its weights, else 0.45; see docs/tello.rst)")
     p.add_argument("--reach-height", type=float, default=0.12,
                    help="ReachRule: also |height sensor - goal height| <= this (m; default "
                         "0.12); the goal height is the emulated layout's, or --goal-height on "
@@ -164,16 +165,20 @@ def parse_args(argv=None):
     return a
 
 
-def reach_rule(args, goal_height=None, layout=None):
+def reach_rule(args, goal_height=None, layout=None, depth=None):
     """The :class:`~torchrl_causal.envs.ReachRule` of the ``--reach-*`` options
     (``goal_height``: the emulated layout's, for ``--reach-height``; ``layout``:
     the emulated one, whose board size and goal standoff ``--reach-offset`` uses
-    unless ``--board-width`` / ``--goal-standoff`` are given)."""
+    unless ``--board-width`` / ``--goal-standoff`` are given; ``depth``: the depth
+    estimator, whose calibrated ``reach_distance`` is the range threshold unless
+    ``--reach-distance`` or ``--reach-offset`` is given)."""
     from torchrl_causal.envs import ReachRule
 
     kw = {}
     if args.reach_distance is not None:
         kw["max_distance"] = args.reach_distance
+    elif args.reach_offset is None and getattr(depth, "reach_distance", None) is not None:
+        kw["max_distance"] = float(depth.reach_distance)
     if args.reach_height is not None:
         kw["max_height_offset"] = args.reach_height
         kw["goal_height"] = args.goal_height if args.goal_height is not None else (
@@ -352,6 +357,8 @@ def main(argv=None) -> dict:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,
                                             args.detector_weights)
+        args.reach_rule = reach_rule(args, depth=depth)
+        summary["reach_rule"] = args.reach_rule.to_dict()
         tello = None
         if not args.dry_run:
             from djitellopy import Tello
@@ -381,13 +388,15 @@ def main(argv=None) -> dict:
             tello = emu.client()
             detector, depth = perception_models(args.perception, emu, args.depth_weights,
                                                 args.detector_weights)
+            args.reach_rule = reach_rule(args, depth=depth)
+            summary["reach_rule"] = args.reach_rule.to_dict()
 
             def new_episode(env):
                 emu.reset_world()
                 lay = emu.env.layout  # this layout's goal height and board
                 env.reach_rule = reach_rule(
                     args, float(lay.goal_point()[2]) if args.reach_height is not None else None,
-                    layout=lay)
+                    layout=lay, depth=depth)
 
             base, tenv = make_tello_env(args, cfg, tello, detector, depth, new_episode,
                                         layout=emu.env.layout)

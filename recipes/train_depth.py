@@ -46,6 +46,7 @@ from torchrl_causal.perception.depth import (
     berhu_loss,
     depth_metrics,
     evaluate_depth,
+    read_sidecar,
     working_size,
 )
 
@@ -78,6 +79,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--limit-train", type=int, default=None, help="use the first N training pairs")
     p.add_argument("--limit-eval", type=int, default=None, help="evaluate on the first N pairs")
     p.add_argument("--n-test-84", type=int, default=300, help="held-out 84x84 views to evaluate (0: none)")
+    p.add_argument("--reach-poses", type=int, default=200,
+                   help="calibrate the arrival rule's range threshold for the new weights on "
+                        "this many poses at the thesis board, stored in the weights as "
+                        "reach_calibration (TelloEnv's default; 0: not calibrated)")
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop (checkpointed, no weights written) after this many epochs; --resume continues")
     p.add_argument("--no-progress", action="store_true")
@@ -103,6 +108,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                 )
     if a.init is not None and not Path(a.init).is_file():
         raise ValueError(f"--init {a.init!r}: no such weights file")
+    if a.reach_poses != 0 and a.reach_poses < 10:
+        raise ValueError(f"--reach-poses must be 0 (no calibration) or >= 10, got {a.reach_poses}")
     return a
 
 
@@ -230,6 +237,9 @@ def main(argv=None) -> dict:
     metas = [json.loads((r / "meta.json").read_text()) if (r / "meta.json").is_file() else {}
              for r in roots]
     data_meta = metas[0]
+    # a fine-tune's parent, read before --out may overwrite it (the shipped weights' chain)
+    parent = ({k: v for k, v in read_sidecar(a.init).items() if k != "history"}
+              if a.init is not None else None)
 
     t_load = time.perf_counter()
     train = concat_splits([load_split(r / "depth" / "train.npz", a.work_height, a.limit_train)
@@ -341,11 +351,20 @@ def main(argv=None) -> dict:
         for (h, w) in ((240, 320), (84, 84))
         for b in (1, 16)
     }
+    reach = None
+    if a.reach_poses > 0:
+        from torchrl_causal.envs.reach import calibrate_reach_distance
+
+        print(f"calibrating the arrival rule's range on {a.reach_poses} poses ...", flush=True)
+        reach = calibrate_reach_distance(est, poses=a.reach_poses, seed=0)
+        reach["command"] = (f"calibrate_reach_distance(est, poses={a.reach_poses}, seed=0) "
+                            "(benchmarks/reach_calibration.py)")
     sidecar = {
         "name": "monodepth",
         "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
         "seed": a.seed,
         "init": a.init,
+        "init_sidecar": parent,
         "data": {
             "root": str(root),
             "roots": [str(r) for r in roots],
@@ -356,7 +375,8 @@ def main(argv=None) -> dict:
             "layout_seed": data_meta.get("layout_seed"),
             "data_seed": data_meta.get("seed"),
             "limit_train": a.limit_train,
-            "dataset_command": (
+            "dataset_commands": [m.get("command") for m in metas],
+            "dataset_command": data_meta.get("command") or (
                 f"python -m torchrl_causal.perception.dataset --out {root} "
                 + " ".join(f"--n-{k} {v}" for k, v in data_meta["counts"].items())
                 + f" --seed {data_meta.get('seed')} --layout-seed {data_meta.get('layout_seed')} "
@@ -382,6 +402,7 @@ def main(argv=None) -> dict:
         "metrics": {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
                     for k, m in metrics.items()},
         "ms_per_frame_cpu": timing,
+        "reach_calibration": reach,
         "torch": str(torch.__version__),
         "history": state["history"],
     }

@@ -228,7 +228,11 @@ def test_write_datasets_files(tmp_path):
         np.testing.assert_array_equal(x.rgb, y.rgb)
         np.testing.assert_allclose(x.depth, y.depth, rtol=1e-3, atol=1e-2)
         assert x.box == y.box
-    assert json.loads((tmp_path / "meta.json").read_text())["seed"] == 2
+    stored_meta = json.loads((tmp_path / "meta.json").read_text())
+    assert stored_meta["seed"] == 2
+    # the command that made it, for the provenance of weights trained on it
+    assert stored_meta["command"].startswith("python -m torchrl_causal.perception.dataset --out ")
+    assert "--views-per-layout 2" in stored_meta["command"]
 
 
 def test_evaluate_detector_ground_truth_is_perfect():

@@ -310,7 +310,7 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
     write_datasets(data, n_train=24, n_val=4, n_test=4, seed=0, image_size=(60, 80), progress=False)
     train_depth = _recipe()
     common = ["--data", str(data), "--epochs", "2", "--batch-size", "8", "--n-test-84", "2",
-              "--no-progress", "--widths", "8", "8", "8", "8", "8", "--decoder", "8", "8", "8", "8"]
+              "--reach-poses", "0", "--no-progress", "--widths", "8", "8", "8", "8", "8", "--decoder", "8", "8", "8", "8"]
     full = train_depth.main(common + ["--out", str(tmp_path / "a.pt"), "--run-dir", str(tmp_path / "ra")])
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(printed["metrics"]) == {"test_60x80", "val_60x80", "test_84x84"}
@@ -327,11 +327,14 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
     side = json.loads((tmp_path / "a.json").read_text())
     assert side["data"]["counts"] == {"train": 24, "val": 4, "test": 4} and side["epochs"] == 2
     assert full["metrics"] == side["metrics"]
+    assert side["reach_calibration"] is None and a.reach_distance is None  # --reach-poses 0
     with pytest.raises(ValueError, match="other options"):
         train_depth.main(common[:3] + ["3"] + common[4:] + ["--run-dir", str(tmp_path / "rb"), "--resume",
                                                             "--out", str(tmp_path / "c.pt")])
     with pytest.raises(ValueError, match="not found"):
         train_depth.main(["--data", str(tmp_path / "none")])
+    with pytest.raises(ValueError, match="--reach-poses"):
+        train_depth.main(common[:2] + ["--reach-poses", "3"])
 
 
 def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
@@ -344,8 +347,10 @@ def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
     train_depth = _recipe()
     start = MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8)))
     start.save(tmp_path / "start.pt")
+    (tmp_path / "start.json").write_text(json.dumps({"name": "start", "command": "made here"}))
     out = train_depth.main(["--data", str(d1), str(d2), "--init", str(tmp_path / "start.pt"),
                             "--epochs", "1", "--batch-size", "8", "--n-test-84", "0", "--no-progress",
+                            "--reach-poses", "10",
                             "--out", str(tmp_path / "ft.pt"), "--run-dir", str(tmp_path / "rf")])
     assert set(out["metrics"]) == {"test_60x80", "val_60x80", "test_60x80_close"}
     close = out["metrics"]["test_60x80_close"]
@@ -354,10 +359,18 @@ def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
     assert side["init"] == str(tmp_path / "start.pt") and side["data"]["counts"]["train"] == 16
     assert side["network"]["widths"] == [8, 8, 8, 8, 8]  # the --init network, not --widths
     assert side["loss"] == "berhu"
+    # the chain: the parent's record, the data sets' commands (none: written by the API)
+    assert side["init_sidecar"] == {"name": "start", "command": "made here"}
+    assert side["data"]["dataset_commands"] == [None, None]
+    # the arrival rule's range, calibrated for these weights and carried inside them
+    cal = side["reach_calibration"]
+    assert 0.28 <= cal["max_distance"] <= 0.51 and cal["poses"] == 10
+    assert len(cal["thresholds"]) == 24 and -1 <= cal["youden"] <= 1
+    assert MonoDepth.load(tmp_path / "ft.pt").reach_distance == cal["max_distance"]
     # the same fine-tune on log depth (--loss log-berhu) takes other steps from the same start
     train_depth.main(["--data", str(d1), str(d2), "--init", str(tmp_path / "start.pt"),
                       "--epochs", "1", "--batch-size", "8", "--n-test-84", "0", "--no-progress",
-                      "--loss", "log-berhu", "--out", str(tmp_path / "ftlog.pt"),
+                      "--loss", "log-berhu", "--reach-poses", "0", "--out", str(tmp_path / "ftlog.pt"),
                       "--run-dir", str(tmp_path / "rl")])
     assert json.loads((tmp_path / "ftlog.json").read_text())["loss"] == "log-berhu"
     a, b = MonoDepth.load(tmp_path / "ft.pt"), MonoDepth.load(tmp_path / "ftlog.pt")

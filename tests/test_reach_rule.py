@@ -63,6 +63,29 @@ def test_tello_env_takes_a_rule_and_refuses_anything_else():
                  verbose=False, reach_rule={"max_distance": 0.4})
 
 
+def test_tello_env_default_rule_is_the_depth_models_calibrated_range(tmp_path):
+    """No rule given: a depth model that carries a calibrated range (its weights'
+    ``reach_calibration``) sets ``max_distance``; one without keeps 0.45 m; a rule
+    given explicitly wins."""
+    from torchrl_causal.perception.depth import FCRN, MonoDepth
+
+    calibrated = MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8)),
+                           meta={"reach_calibration": {"max_distance": 0.38}})
+    calibrated.save(tmp_path / "d.pt")
+    loaded = MonoDepth.load(tmp_path / "d.pt")  # carried inside the weights file
+    assert loaded.reach_distance == 0.38
+    for depth, expect in ((loaded, 0.38), (MonoDepth(FCRN()), 0.45),
+                          (lambda p: torch.ones(p.shape[:3]), 0.45)):
+        env = TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=depth,
+                       verbose=False)
+        assert env.reach_rule.max_distance == expect
+        env.close()
+    env = TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=loaded,
+                   verbose=False, reach_rule=ReachRule(max_distance=0.5))
+    assert env.reach_rule.max_distance == 0.5
+    env.close()
+
+
 # ------------------------------------------------------------------ goal-point offset
 
 def _view(env, x, y, yaw_offset_deg=0.0):

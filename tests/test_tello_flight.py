@@ -144,6 +144,22 @@ def test_the_reach_rule_options_build_the_rule():
     assert plain.goal_height is None
 
 
+def test_the_depth_models_calibrated_range_is_the_default_threshold():
+    """Without --reach-distance the range threshold is the depth model's own (stored with
+    its weights by recipes/train_depth.py); --reach-distance and --reach-offset win."""
+    from torchrl_causal.perception.depth import FCRN, MonoDepth
+
+    depth = MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8)),
+                      meta={"reach_calibration": {"max_distance": 0.38}})
+    args = fly_tello.parse_args(["--run", str(POLICY)])
+    assert fly_tello.reach_rule(args, goal_height=1.2, depth=depth).max_distance == 0.38
+    assert fly_tello.reach_rule(args, depth=MonoDepth(FCRN())).max_distance == 0.45
+    given = fly_tello.parse_args(["--run", str(POLICY), "--reach-distance", "0.5"])
+    assert fly_tello.reach_rule(given, depth=depth).max_distance == 0.5
+    offset = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2"])
+    assert fly_tello.reach_rule(offset, depth=depth).max_distance == 1.0
+
+
 def test_reach_offset_takes_the_emulated_layouts_board():
     from torchrl_causal.envs.layouts import RandomLayoutGenerator
 

@@ -30,7 +30,10 @@ step, from what it measures:
   (random layouts turn it up to 30 deg), this can.
 
 The thresholds were chosen by measurement (docs/tello.rst, "An arrival rule
-that agrees with the simulator").
+that agrees with the simulator"). ``max_distance`` depends on the depth model:
+:func:`calibrate_reach_distance` finds a model's own threshold (a pose sweep at
+the thesis board), ``recipes/train_depth.py`` stores it in the weights it writes,
+and :class:`~torchrl_causal.envs.TelloEnv` uses it when given no rule.
 
 Example:
     >>> rule = ReachRule(max_distance=0.45, goal_height=1.0, max_height_offset=0.12)
@@ -47,7 +50,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["ReachRule", "goal_point_offset"]
+__all__ = ["ReachRule", "calibrate_reach_distance", "goal_point_offset"]
 
 
 def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.45,
@@ -260,3 +263,103 @@ class ReachRule:
     def to_dict(self) -> dict:
         """The rule's options (for ``summary.json``)."""
         return asdict(self)
+
+
+def calibrate_reach_distance(depth_estimator=None, *, poses: int = 200, seed: int = 0,
+                             thresholds=None, detector=None) -> dict:
+    """The ``max_distance`` at which a depth model's goal distance best says "arrived".
+
+    The drone is placed at ``poses`` random poses in front of the thesis
+    scene's board (along its normal from 0.35 m nearer to 0.45 m farther than
+    the goal point, up to 0.25 m sideways, yaw within 15 deg of facing it; plain
+    240 x 320 renders) and the RGB stack (the detector + ``depth_estimator``)
+    measures ``goal_distance``, the range :class:`ReachRule` compares with
+    ``max_distance``. For each threshold: the share of poses inside
+    :class:`~torchrl_causal.envs.DroneNavEnv`'s 0.2 m goal sphere where the
+    rule would fire (``fire_inside``) and the share outside it
+    (``fire_outside``); the best threshold has the largest difference (Youden's
+    J; ties: the smaller threshold).
+
+    Args:
+        depth_estimator: a :class:`~torchrl_causal.perception.MonoDepth` or any
+            ``uint8 [B, H, W, 3] -> depth [B, H, W]`` callable (None: the
+            shipped MonoDepth).
+        poses: how many poses (>= 10).
+        seed: the poses' seed.
+        thresholds: the candidate thresholds (m; default 0.28-0.51 in 1 cm steps).
+        detector: the goal detector (None: the shipped YOLOv8).
+
+    Returns:
+        ``{"max_distance", "youden", "fire_inside", "fire_outside", "n_inside",
+        "n_outside", "poses", "seed", "thresholds": [one row per threshold]}``.
+
+    Example:
+        >>> cal = calibrate_reach_distance(poses=10)       # doctest: +SKIP
+        >>> ReachRule(max_distance=cal["max_distance"])   # doctest: +SKIP
+    """
+    if not (isinstance(poses, int) and poses >= 10):
+        raise ValueError(f"poses must be an int >= 10, got {poses!r}")
+    grid = [x / 100 for x in range(28, 52)] if thresholds is None else [float(t) for t in thresholds]
+    if not grid:
+        raise ValueError("thresholds must not be empty")
+    for t in grid:
+        _finite("max_distance", t, 0.05, 3.0, strict_low=True)
+    return dict(_threshold_table(_reach_sweep(depth_estimator, detector, poses, seed), grid),
+                poses=poses, seed=seed)
+
+
+def _threshold_table(rows, grid) -> dict:
+    """Where a threshold on ``measured_m`` fires, inside and outside the 0.2 m sphere
+    (poses without the goal in sight left out), and the best one (Youden's J)."""
+    inside = [r for r in rows if r["in_sight"] and r["to_goal_point_m"] <= 0.2]
+    outside = [r for r in rows if r["in_sight"] and r["to_goal_point_m"] > 0.2]
+    table = []
+    for t in grid:
+        fin = sum(r["measured_m"] <= t for r in inside) / max(1, len(inside))
+        fout = sum(r["measured_m"] <= t for r in outside) / max(1, len(outside))
+        table.append({"threshold_m": round(t, 3), "fire_inside": round(fin, 3),
+                      "fire_outside": round(fout, 3), "youden": round(fin - fout, 3)})
+    best = max(table, key=lambda r: (r["youden"], -r["threshold_m"]))
+    return {"max_distance": best["threshold_m"], "youden": best["youden"],
+            "fire_inside": best["fire_inside"], "fire_outside": best["fire_outside"],
+            "n_inside": len(inside), "n_outside": len(outside), "thresholds": table}
+
+
+def _reach_sweep(depth_estimator, detector, poses: int, seed: int) -> list[dict]:
+    """One row per pose: distance to the goal point, goal in sight, measured goal distance."""
+    import torch
+    from tensordict import TensorDict
+
+    from ..perception.dataset import _quat
+    from ..perception.depth import MonoDepth
+    from ..transforms import make_causal_transforms
+    from .drone import DroneNavEnv
+
+    env = DroneNavEnv("thesis", image_size=(240, 320), seed=0)
+    try:
+        env.reset()
+        lay = env.layout
+        gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
+        normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+        side = np.array([-normal[1], normal[0]])
+        stack = make_causal_transforms(
+            env, perception="rgb", detector=detector,
+            depth_estimator=MonoDepth.load() if depth_estimator is None else depth_estimator)
+        rng = np.random.default_rng(seed)
+        qa = env.ids.qpos_adr
+        rows = []
+        for _ in range(poses):
+            ahead, lat = rng.uniform(-0.35, 0.45), rng.uniform(-0.25, 0.25)
+            yaw = math.degrees(math.atan2(-normal[1], -normal[0])) + rng.uniform(-15, 15)
+            xy = gp[:2] + ahead * normal + lat * side
+            env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2])
+            env.data.qpos[qa + 3:qa + 7] = _quat(yaw, 0.0, 0.0)
+            obs = env._observe(False, False)
+            with torch.no_grad():
+                td = stack(TensorDict(dict(obs.items()), []).unsqueeze(0))[0]
+            rows.append({"to_goal_point_m": float(math.hypot(ahead, lat)),
+                         "in_sight": bool(td["goal_in_sight"].item()),
+                         "measured_m": float(td["goal_distance"].item())})
+    finally:
+        env.close()
+    return rows

@@ -179,9 +179,11 @@ class TelloEnv(EnvBase):
             :class:`~torchrl_causal.envs.rewards.StepOutcome`.
         confidence_threshold: detector score needed for ``goal_in_sight``.
         reach_rule: a :class:`~torchrl_causal.envs.reach.ReachRule`: when the
-            measured goal counts as reached (default ``ReachRule()``: goal in
-            sight within 0.45 m of the camera and 30 deg; give it ``goal_height``
-            to check the height sensor too, as ``fly_tello.py`` does).
+            measured goal counts as reached (default: ``ReachRule()`` with the
+            depth estimator's own calibrated range, its ``reach_distance``, when
+            it has one (the shipped MonoDepth does), else 0.45 m; goal in sight
+            within it and 30 deg; give it ``goal_height`` to check the height
+            sensor too, as ``fly_tello.py`` does).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
@@ -283,8 +285,9 @@ class TelloEnv(EnvBase):
         self.reward_fn = make_reward(reward)
         if not (isinstance(confidence_threshold, (int, float)) and 0 <= confidence_threshold <= 1):
             raise ValueError(f"confidence_threshold must be in [0, 1], got {confidence_threshold!r}")
-        if reach_rule is None:
-            reach_rule = ReachRule()
+        if reach_rule is None:  # the depth model's own calibrated range, if it has one
+            d = getattr(depth_estimator, "reach_distance", None)
+            reach_rule = ReachRule() if d is None else ReachRule(max_distance=float(d))
         if not isinstance(reach_rule, ReachRule):
             raise ValueError(f"reach_rule must be a ReachRule or None, got {reach_rule!r}")
         if geofence is not None:

@@ -56,6 +56,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -869,6 +870,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
         progress=not a.no_progress,
         **extra,
     )
+    # the command that made the data set, for the weights' provenance (train_depth.py)
+    meta["command"] = "python -m torchrl_causal.perception.dataset " + shlex.join(
+        sys.argv[1:] if argv is None else list(argv))
+    (Path(a.out) / "meta.json").write_text(json.dumps(meta, indent=1) + "\n")
     print(json.dumps(meta), file=sys.stdout)
     return meta
 

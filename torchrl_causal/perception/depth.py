@@ -334,6 +334,18 @@ class MonoDepth(nn.Module):
         return self.net.max_depth
 
     @property
+    def reach_distance(self) -> float | None:
+        """The range threshold (m) at which this model's goal distance best says
+        "arrived" (``meta["reach_calibration"]``, written by
+        ``recipes/train_depth.py`` with
+        :func:`~torchrl_causal.envs.reach.calibrate_reach_distance`); ``None``
+        if the weights were never calibrated. :class:`~torchrl_causal.envs.TelloEnv`
+        uses it when given no ``reach_rule``."""
+        cal = self.meta.get("reach_calibration") or {}
+        d = cal.get("max_distance")
+        return None if d is None else float(d)
+
+    @property
     def device(self) -> torch.device:
         """The device of the network's parameters."""
         return next(self.net.parameters()).device
