@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,24 @@ generalist: venv
 THESIS_RUN ?= outputs/make_train
 ship-thesis: venv
 	$(PY) recipes/ship_policy.py $(THESIS_RUN) thesis --command "make train"
+
+# make depth-weights: the shipped MonoDepth (about 1.5 hours on one core): the base network on
+# plain renders, then a log-BerHu fine-tune on frames through the Tello camera path (video
+# frames and close-ups), whose arrival-rule range is calibrated and stored with the weights
+# (docs/perception.rst, "The shipped weights"). Both sidecars record these commands.
+depth-weights: venv
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_data --n-train 6000 \
+	    --n-val 300 --n-test 300 --seed 0 --no-progress
+	$(PY) recipes/train_depth.py --data outputs/depth_data --epochs 12 --threads 1 \
+	    --reach-poses 0 --out outputs/depth_base/monodepth.pt --run-dir outputs/depth_run --no-progress
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_vp --n-train 2000 \
+	    --n-val 200 --n-test 200 --seed 12 --video-path --no-progress
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_close --n-train 2000 \
+	    --n-val 200 --n-test 200 --seed 11 --goal-absent-frac 0 --start-frac 0 \
+	    --goal-distance 0.25 1.5 --video-path --no-progress
+	$(PY) recipes/train_depth.py --data outputs/depth_vp outputs/depth_close \
+	    --init outputs/depth_base/monodepth.pt --epochs 4 --lr 5e-4 --loss log-berhu \
+	    --threads 1 --run-dir outputs/depth_ft_run --no-progress
 
 # make demo: watch the shipped policies fly (recipes/watch.py): flight.mp4 (onboard camera +
 # chase view), flight_maps.png and episodes.jsonl, thesis on the thesis scene and generalist

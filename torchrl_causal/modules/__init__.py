@@ -6,9 +6,13 @@
 * :class:`CBNGate` -- Algorithm 3 (``"p"``, ``"pn"``) and Algorithm 4 (``"v2"``),
   a drop-in replacement of :class:`torchrl.modules.EGreedyModule` placed after
   :class:`torchrl.modules.QValueActor`.
+* :class:`LoopGuard` -- placed last: a deterministic policy never repeats a
+  two-move loop (``A, inv(A), A, inv(A)``).
 """
 
 from torchrl_causal.modules.gate import GATE_VARIANTS, CBNGate
+from torchrl_causal.modules.loop_guard import INVERSE_ACTIONS, LoopGuard
 from torchrl_causal.modules.qnet import FeatureQNet, MapQNet, ThesisQNet
 
-__all__ = ["CBNGate", "FeatureQNet", "GATE_VARIANTS", "MapQNet", "ThesisQNet"]
+__all__ = ["CBNGate", "FeatureQNet", "GATE_VARIANTS", "INVERSE_ACTIONS", "LoopGuard", "MapQNet",
+           "ThesisQNet"]

@@ -75,9 +75,8 @@ __all__ = [
 DEFAULT_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "monodepth.pt"
 #: The command that produces the shipped weights (quoted in load errors).
 TRAIN_COMMAND: str = (
-    "python -m torchrl_causal.perception.dataset --out outputs/depth_data "
-    "--n-train 6000 --n-val 300 --n-test 300 --seed 0 && "
-    "python recipes/train_depth.py --data outputs/depth_data --epochs 12 --threads 1"
+    "make depth-weights (python -m torchrl_causal.perception.dataset, then "
+    "python recipes/train_depth.py: a base network, then a fine-tune on camera-path frames)"
 )
 _FORMAT = "torchrl_causal.monodepth"
 _VERSION = 1
