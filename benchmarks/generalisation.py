@@ -16,7 +16,9 @@ Prints one JSON object per line:
 * ``figure="variant"``: per variant and setting over its runs (seeds): mean success,
   its 95 % t-interval over seeds, how many seeds reach ``--target`` (0.9), mean SPL;
   with ``--gate-off`` also ``<variant>/gate_off``, the CBN-gated runs flown with the
-  gate passing the greedy action through;
+  gate passing the greedy action through; with ``--loop-guard`` also
+  ``<variant>/loop_guard``, the runs flown with a
+  :class:`~torchrl_causal.modules.LoopGuard` appended;
 * ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
   seed-by-seed difference of success against the control, its 95 % t-interval and the
   verdict (helps / hurts / cannot be told apart).
@@ -77,7 +79,7 @@ def scene_env(setting: str, seed: int):
 
 
 def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
-             gate_off: bool = False) -> list[dict]:
+             gate_off: bool = False, loop_guard: bool = False) -> list[dict]:
     import train
 
     summary_path = folder / "summary.json"
@@ -91,17 +93,29 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
         cfg = OmegaConf.load(folder / "config.yaml")
         env = train.with_features(cfg, train.ru.VARIANTS[cfg.variant], scene_env(setting, seed))
         policy, env, cfg = train.load_policy(folder, env=env)
-        gate = policy[-1] if hasattr(policy[-1], "eval_gate") else None
+        gate = next((m for m in policy if hasattr(m, "eval_gate")), None)
         for off in ((False, True) if gate_off and gate is not None else (False,)):
             if gate is not None:
                 gate.eval_gate = not off
             rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
                                  episodes, seed, off))
+        if gate is not None:
+            gate.eval_gate = True
+        if loop_guard and not any(type(m).__name__ == "LoopGuard" for m in policy):
+            from tensordict.nn import TensorDictSequential
+
+            from torchrl_causal.modules import LoopGuard
+
+            mask = "action_mask" if "action_mask" in env.observation_spec.keys() else None
+            guarded = TensorDictSequential(*policy, LoopGuard(action_mask_key=mask))
+            rows.append(_run_row(name, folder, cfg, summary, prov, guarded, env, setting,
+                                 episodes, seed, False, suffix="/loop_guard"))
         env.close()
     return rows
 
 
-def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, seed, gate_off):
+def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, seed, gate_off,
+             suffix=""):
     from torchrl_causal.training import evaluate
 
     t0 = time.perf_counter()
@@ -113,7 +127,7 @@ def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, s
         "bench": "generalisation", "figure": "run", "name": name, "run": str(folder),
         # "/gate_off": the same policy evaluated with its CBN gate passing the greedy
         # action through (CBNGate.eval_gate=False), on the same episodes
-        "variant": str(cfg.variant) + ("/gate_off" if gate_off else ""),
+        "variant": str(cfg.variant) + ("/gate_off" if gate_off else "") + suffix,
         "seed": int(cfg.seed),
         "training_scene": str(cfg.env.layout), "setting": setting, "episodes": n,
         "success_rate": res["success_rate"], "ci95": [round(lo, 4), round(hi, 4)],
@@ -208,6 +222,9 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--out", default=None, help="also append the JSON lines to this file")
     p.add_argument("--gate-off", action="store_true",
                    help="also evaluate each CBN-gated run with its gate off (variant '<v>/gate_off')")
+    p.add_argument("--loop-guard", action="store_true",
+                   help="also evaluate each run without a LoopGuard with one appended "
+                        "(variant '<v>/loop_guard'; it needs an action history of >= 4)")
     p.add_argument("--control", default=None,
                    help="a variant (e.g. dqn_features): paired differences of every other "
                         "variant against it, seed by seed")
@@ -241,7 +258,8 @@ def main(argv=None) -> list[dict]:
     if not a.no_oracle:
         emit(oracle_rows(a.settings, a.episodes, a.seed))
     for name, folder in named:
-        emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off))
+        emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off,
+                      loop_guard=a.loop_guard))
     emit(variant_rows(rows, a.target))
     if a.control:
         emit(paired_rows(rows, a.control))

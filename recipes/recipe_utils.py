@@ -376,6 +376,9 @@ def _check_teacher(cfg: Mapping) -> None:
              "features.shield", shield,
              "false unless features.inputs has an EgoMap input (goal_memory, map_clearance, "
              "ego_map)")
+    loop_guard = _get(cfg, "features.loop_guard", False)
+    _require(not loop_guard or history >= 4, "features.loop_guard", loop_guard,
+             "false unless features.history >= 4 (LoopGuard reads the last four actions)")
     _require(not ("ego_map" in inputs and _get(cfg, "features.image", True)), "features.image",
              _get(cfg, "features.image", True), "false when ego_map is an input (MapQNet)")
     _require(("action_history" in inputs) == (history > 0), "features.inputs", inputs,

@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import recipe_utils as ru  # noqa: E402
 from torchrl_causal.schema import ACTION_NAMES  # noqa: E402
+from torchrl_causal.pretrained import policy_guards  # noqa: E402
 import results  # noqa: E402
 
 CONFIG_DIR = str(Path(__file__).resolve().parent / "config")
@@ -101,6 +102,7 @@ def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = 
         image=bool(features.get("image", True)) if variant.features else True,
         ego_map=_plain(features.get("ego_map", {})) if variant.features else {},
         shield=bool(features.get("shield", False)) if variant.features else False,
+        loop_guard=bool(features.get("loop_guard", False)) if variant.features else False,
     )
 
 
@@ -227,7 +229,7 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
     if files["explorer"].name != "explorer.pt":  # a checkpoint: its snapshot of the final policy
         state = state["best"]["explorer"] if state.get("best") else state["explorer"]
     explorer.load_state_dict(state)
-    return TensorDictSequential(actor, explorer), env, cfg
+    return TensorDictSequential(actor, explorer, *policy_guards(policy_spec(cfg, variant))), env, cfg
 
 
 def teach(cfg: DictConfig, env, actor, hook, out: Path) -> list[dict] | None:
@@ -365,6 +367,7 @@ def train(cfg: DictConfig) -> dict:
         optimizer=optim, eval_envs=eval_envs, output_dir=out,
         replay_buffer=build_buffer(cfg, paths["buffer"].parent / "buffer_storage", cfg.device),
         logger=make_logger(cfg, paths["logs"]),
+        guards=policy_guards(policy_spec(cfg, variant)),
     )
     # Alg. 1, l. 4-20: collect, gate, store (+ relearn every k), update, sync, evaluate
     summary = {"variant": cfg.variant, "seed": cfg.seed, "k": cfg.causal.k,

@@ -51,3 +51,12 @@ def test_bad_input_is_named():
         gb.main(["--runs", "/nonexistent/run*"])
     with pytest.raises(SystemExit):
         gb.main(["--episodes", "0"])
+
+
+def test_loop_guard_rows_fly_the_same_episodes_with_the_guard_appended():
+    rows = gb.main(["--pretrained", "generalist", "--episodes", "2", "--settings", "heldout",
+                    "--loop-guard", "--no-oracle"])
+    runs = [r for r in rows if r["figure"] == "run"]
+    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/loop_guard"]
+    assert all(r["episodes"] == 2 and r["setting"] == "heldout" for r in runs)
+    assert all(0.0 <= r["success_rate"] <= 1.0 for r in runs)

@@ -53,6 +53,16 @@ def test_bad_teacher_and_feature_options_are_named_before_training(override, nee
         ru.validate_config(cfg, tmp_path)
 
 
+def test_loop_guard_needs_four_actions_of_history(tmp_path):
+    cfg = _cfg([f"output_dir={tmp_path}", "features.loop_guard=true", "features.history=2"])
+    with pytest.raises(ValueError, match="features.loop_guard"):
+        ru.validate_config(cfg, tmp_path)
+    from torchrl_causal.pretrained import PolicySpec
+
+    with pytest.raises(ValueError, match="history >= 4"):
+        PolicySpec(inputs=["causal_features", "action_history"], history=2, loop_guard=True)
+
+
 def test_ego_map_input_needs_the_image_off(tmp_path):
     cfg = _cfg([f"output_dir={tmp_path}", "features.inputs=[ego_map,causal_features,action_history]",
                 "features.image=true"])
@@ -68,7 +78,7 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
             "eval.interval_frames=60", "eval.episodes=1", "eval.final_episodes=2",
             "env.image_size=48", "env.max_steps=40", "progress=false", "threads=1",
             "logger.backend=none", "outputs.draw_cbns=false", "checkpoint.interval_frames=60",
-            "outputs.videos=1"]
+            "outputs.videos=1", "features.loop_guard=true"]
     # first session: the teacher phase, then stopped (as if killed) at the first checkpoint
     first = train.train(_cfg(args + ["checkpoint.stop_after_frames=60"]))
     assert first["stopped_early"]
@@ -87,7 +97,7 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
     assert summary["teacher"]["rounds"] == 1 and summary["teacher"]["frames"] > 0
     spec = json.loads((tmp_path / "policy.json").read_text())
     assert spec["inputs"] == ["causal_features", "goal_memory", "map_clearance", "action_history"]
-    assert spec["shield"] is True
+    assert spec["shield"] is True and spec["loop_guard"] is True
     assert spec["provenance"]["teacher_frames"] == summary["teacher"]["frames"]
     assert {Path(p).name for p in summary["flight_maps"]} == {
         "flight_map_val.png", "flight_map_heldout.png", "flight_map_thesis.png"}
@@ -109,3 +119,7 @@ def test_tiny_generalist_run_writes_its_outputs_and_resume_skips_the_teacher(tmp
                                                                 image_size=48, seed=0))
     td = env.rollout(5, policy, break_when_any_done=True)
     assert 1 <= td.shape[0] <= 5 and ((td["action"] >= 0) & (td["action"] < 8)).all()
+    # the loop guard acts last, as it did in the run's collection and evaluation
+    assert type(policy[-1]).__name__ == "LoopGuard" and "loop_guard_fired" in td.keys()
+    run_policy, _, _ = train.load_policy(tmp_path, scene="heldout")
+    assert type(run_policy[-1]).__name__ == "LoopGuard"

@@ -34,13 +34,14 @@ from .policy import (
     POLICY_FILES,
     PolicySpec,
     build_policy,
+    policy_guards,
     load_policy_dir,
     policy_transforms,
     with_policy_features,
 )
 
 __all__ = ["available", "load_policy", "policy_dir", "provenance", "PolicySpec",
-           "build_policy", "policy_transforms", "with_policy_features", "load_policy_dir",
+           "build_policy", "policy_guards", "policy_transforms", "with_policy_features", "load_policy_dir",
            "FEATURE_SCALES", "POLICY_FILES", "POLICIES_DIR"]
 
 #: Where the shipped policies live (package data).

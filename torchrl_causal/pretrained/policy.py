@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["PolicySpec", "FEATURE_SCALES", "policy_transforms", "build_policy",
-           "load_policy_dir", "POLICY_FILES"]
+           "load_policy_dir", "policy_guards", "POLICY_FILES"]
 
 #: Divisors that bring each input key's values to order 1 inside the Q-network
 #: (``causal_features``: five depths and the goal distance in metres / 5, the
@@ -79,6 +79,9 @@ class PolicySpec:
             ``action_mask`` allows (the Q-values of the others are masked out
             in the actor, and the explorer draws among the allowed ones);
             needs an EgoMap input.
+        loop_guard: append :class:`~torchrl_causal.modules.LoopGuard` after the
+            explorer: the policy never repeats a two-move loop
+            (``A, inv(A), A, inv(A)``); needs ``history >= 4``.
         provenance: free-form record (command, seed, frames, commit, figures).
 
     Example:
@@ -103,6 +106,7 @@ class PolicySpec:
     image: bool = True
     ego_map: dict = field(default_factory=dict)
     shield: bool = False
+    loop_guard: bool = False
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -122,6 +126,9 @@ class PolicySpec:
                                                     and self.history >= 1):
             raise ValueError(f"PolicySpec.history must be an int >= 1 when 'action_history' is "
                              f"an input, got {self.history!r}")
+        if self.loop_guard and not (isinstance(self.history, int) and self.history >= 4):
+            raise ValueError(f"PolicySpec.loop_guard=True reads the last four actions: it needs "
+                             f"history >= 4, got {self.history!r}")
         if "feature_history" in self.inputs and not (isinstance(self.frames, int)
                                                      and self.frames >= 2):
             raise ValueError(f"PolicySpec.frames must be an int >= 2 when 'feature_history' "
@@ -350,4 +357,21 @@ def load_policy_dir(folder, *, env=None, device="cpu"):
     actor.load_state_dict(torch.load(files["model"], map_location=device, weights_only=False))
     explorer.load_state_dict(torch.load(files["explorer"], map_location=device,
                                         weights_only=False))
-    return TensorDictSequential(actor, explorer), wrapped, spec
+    return TensorDictSequential(actor, explorer, *policy_guards(spec)), wrapped, spec
+
+
+def policy_guards(spec: PolicySpec) -> list:
+    """The modules placed after the explorer (a :class:`~torchrl_causal.modules.LoopGuard`
+    when ``spec.loop_guard``), at acting time, in training and evaluation alike.
+
+    Example:
+        >>> spec = PolicySpec(inputs=["causal_features", "action_history"], history=4,
+        ...                   loop_guard=True)
+        >>> [type(m).__name__ for m in policy_guards(spec)]
+        ['LoopGuard']
+    """
+    if not spec.loop_guard:
+        return []
+    from ..modules import LoopGuard
+
+    return [LoopGuard(spec.n_actions, action_mask_key="action_mask" if spec.shield else None)]

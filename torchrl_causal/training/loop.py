@@ -347,6 +347,8 @@ class DQNLoop:
             and the hook's causal states).
         outcome_keys: overrides of :data:`~torchrl_causal.training.evaluation.OUTCOME_KEYS`
             (which ``("next", key)`` means success, crash, out of bounds).
+        guards: modules placed after the explorer when acting, in collection and
+            evaluation (e.g. :class:`~torchrl_causal.modules.LoopGuard`).
 
     Raises:
         ValueError: an env whose action spec is not categorical; a config that is not a
@@ -400,6 +402,7 @@ class DQNLoop:
         logger=None,
         store_keys: Sequence | None = None,
         outcome_keys: Mapping[str, str] | None = None,
+        guards: Sequence = (),
     ):
         from tensordict.nn import TensorDictSequential
         from torchrl.objectives import DQNLoss, HardUpdate
@@ -411,7 +414,8 @@ class DQNLoop:
         self.n_actions = _check_categorical(env)
         self.num_envs = _num_envs(env)
         self.env, self.actor, self.explorer, self.hook = env, actor, explorer, hook
-        self.policy = TensorDictSequential(actor, explorer)
+        self.guards = list(guards)
+        self.policy = TensorDictSequential(actor, explorer, *self.guards)
         self.device = torch.device(cfg.device)
         if loss is None:
             loss = DQNLoss(actor, loss_function=cfg.loss_function, delay_value=True,
@@ -452,7 +456,8 @@ class DQNLoop:
             # thread updates the learner's in place meanwhile) and the buffer samples
             # with its own generator (the worker may draw from the global RNG)
             self._acting_actor = copy.deepcopy(actor).requires_grad_(False)
-            self.collector_policy = TensorDictSequential(self._acting_actor, explorer)
+            self.collector_policy = TensorDictSequential(self._acting_actor, explorer,
+                                                         *self.guards)
             self._rb_rng = torch.Generator(device=_storage_device(replay_buffer))
             replay_buffer.set_rng(self._rb_rng)
         self.eval_envs = dict(eval_envs or {})
