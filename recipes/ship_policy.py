@@ -33,8 +33,14 @@ def _commit() -> str:
 
 
 def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
-         dest: Path = DEST) -> Path:
+         dest: Path = DEST, loop_guard: bool = False) -> Path:
     """Copies the policy of ``run_dir`` to ``dest/name``; returns that folder.
+
+    ``loop_guard=True`` ships the policy with a
+    :class:`~torchrl_causal.modules.LoopGuard` appended
+    (``features.loop_guard=true`` in the shipped config and ``policy.json``);
+    ``provenance.json`` records that it was added at shipping time when the run
+    did not act with one.
 
     Raises:
         FileNotFoundError: the run folder lacks ``config.yaml``, ``model.pt`` or
@@ -54,6 +60,12 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
             raise FileNotFoundError(f"run folder {str(run_dir)!r} has no {rel}: is it a finished "
                                     "run of recipes/train.py?")
     cfg = OmegaConf.load(run_dir / "config.yaml")
+    trained_with_guard = bool(OmegaConf.select(cfg, "features.loop_guard", default=False))
+    if loop_guard:
+        ru._require(int(OmegaConf.select(cfg, "features.history", default=0) or 0) >= 4,
+                    "--loop-guard", True, f"a run with features.history >= 4 ({run_dir})")
+        OmegaConf.set_struct(cfg, False)
+        cfg.features.loop_guard = True
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     provenance = {
@@ -69,13 +81,16 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         "commit": _commit(),
         "notes": notes,
     }
+    if loop_guard and not trained_with_guard:
+        provenance["loop_guard"] = ("added when shipped (ship_policy.py --loop-guard): the run "
+                                    "trained and made final_eval without it")
     spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant], provenance=provenance)
     out = dest / name
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(run_dir / "model.pt", out / "model.pt")
     shutil.copyfile(run_dir / "explorer.pt", out / "explorer.pt")
     # the run's config too: the folder stays a valid run folder (train.load_policy, fly_tello --run)
-    shutil.copyfile(run_dir / "config.yaml", out / "config.yaml")
+    OmegaConf.save(cfg, out / "config.yaml")
     (out / "policy.json").write_text(spec.to_json())
     (out / "provenance.json").write_text(json.dumps(provenance, indent=2, default=str))
     return out
@@ -87,8 +102,13 @@ def main(argv=None):
     p.add_argument("name", help="the pretrained name (e.g. generalist, thesis)")
     p.add_argument("--command", default=None, help="the command that made the run (provenance)")
     p.add_argument("--notes", default="", help="free text for provenance.json")
+    p.add_argument("--loop-guard", action="store_true",
+                   help="ship with a LoopGuard appended (features.loop_guard=true)")
     a = p.parse_args(argv)
-    out = ship(a.run_dir, a.name, command=a.command, notes=a.notes)
+    try:
+        out = ship(a.run_dir, a.name, command=a.command, notes=a.notes, loop_guard=a.loop_guard)
+    except ValueError as e:
+        p.error(str(e))
     print(f"Shipped {a.run_dir} as pretrained policy {a.name!r}: {out}")
 
 

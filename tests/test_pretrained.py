@@ -105,3 +105,26 @@ def test_fly_tello_flies_the_shipped_generalist_when_no_run_is_given():
     args = fly_tello.parse_args(["--episodes", "1"])
     assert Path(args.run) == policy_dir("generalist")
     assert Path(args.out) == Path("outputs") / "tello" / "generalist"  # not inside the package
+
+
+def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
+    """recipes/ship_policy.py: a run folder (here the shipped generalist's, itself a run
+    folder) becomes a loadable policy folder; --loop-guard appends LoopGuard and says so."""
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import ship_policy
+
+    out = ship_policy.ship(policy_dir("generalist"), "guarded", dest=tmp_path, loop_guard=True)
+    spec = json.loads((out / "policy.json").read_text())
+    assert spec["loop_guard"] is True and spec["shield"] is True
+    assert "loop_guard" in json.loads((out / "provenance.json").read_text())
+    policy, env, _ = load_policy_dir(out, env=DroneNavEnv("random", split="heldout", seed=0))
+    assert type(policy[-1]).__name__ == "LoopGuard"
+    shipped = load_policy_dir(policy_dir("generalist"))[0][0].state_dict()
+    assert all(torch.equal(v, shipped[k]) for k, v in policy[0].state_dict().items())
+    env.close()
+    # the thesis policy has no action history: the guard cannot read four actions
+    with pytest.raises(SystemExit):
+        ship_policy.main([str(policy_dir("thesis")), "x", "--loop-guard"])
+    assert "--loop-guard" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="has no config.yaml"):
+        ship_policy.ship(tmp_path / "guarded_missing", "y", dest=tmp_path)
