@@ -113,7 +113,14 @@ def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
     sys.path.insert(0, str(ROOT / "recipes"))
     import ship_policy
 
-    out = ship_policy.ship(policy_dir("generalist"), "guarded", dest=tmp_path, loop_guard=True)
+    from omegaconf import OmegaConf
+
+    run = tmp_path / "run"  # the generalist's run as trained: no guard in its config
+    shutil.copytree(policy_dir("generalist"), run)
+    cfg = OmegaConf.load(run / "config.yaml")
+    cfg.features.loop_guard = False
+    OmegaConf.save(cfg, run / "config.yaml")
+    out = ship_policy.ship(run, "guarded", dest=tmp_path, loop_guard=True)
     spec = json.loads((out / "policy.json").read_text())
     assert spec["loop_guard"] is True and spec["shield"] is True
     assert "loop_guard" in json.loads((out / "provenance.json").read_text())
