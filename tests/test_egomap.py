@@ -204,3 +204,48 @@ def test_shielded_policy_never_takes_a_masked_move():
         PolicySpec(inputs=["causal_features"], shield=True)
     with pytest.raises(ValueError, match="min_clearance"):
         EgoMap(min_clearance=-1.0)
+
+
+def test_geofence_masks_moves_that_would_leave_the_area():
+    """A tuple fence (start frame): forward is allowed while it ends 0.1 m inside the fence,
+    masked once it would not; the other moves stay allowed."""
+    env = TransformedEnv(DroneNavEnv(seed=0), EgoMap(geofence=(-2.0, -2.0, 0.5, 2.0)))
+    td = env.reset()
+    assert td["action_mask"][A["forward"]]  # 0.25 m ahead: inside 0.5 - 0.1
+    td = _fly(env, td, ["forward"])
+    mask = td["action_mask"]
+    assert not mask[A["forward"]] and mask[A["backward"]]  # 0.5 m: beyond 0.4
+    assert mask[A["turn_left"]] and mask[A["turn_right"]]
+    env.close()
+    with pytest.raises(ValueError, match="geofence"):
+        EgoMap(geofence=(1.0, -1.0, 2.0, 1.0))  # the start must lie inside
+    with pytest.raises(ValueError, match="geofence"):
+        EgoMap(geofence="room")
+
+
+def test_env_geofence_keeps_a_forward_flier_inside_random_arenas():
+    """geofence='env' reads each layout's arena and ceiling at reset: a policy that flies
+    forward (ascends when it can, turns when forward is masked) leaves the arena without
+    the fence and never with it, over the same seeded episodes (the map's shield on in
+    both, so that obstacles end few of them)."""
+    def fly(fence):
+        env = TransformedEnv(DroneNavEnv("random", split="train", seed=5, max_steps=60),
+                             EgoMap(geofence=fence))
+        env.set_seed(5)
+        exits = 0
+        for _ in range(6):
+            td = env.reset()
+            for t in range(60):
+                mask = td["action_mask"]
+                name = "ascend" if t % 5 == 0 and mask[A["ascend"]] else (
+                    "forward" if mask[A["forward"]] else "turn_left")
+                td = env.step(td.set("action", torch.tensor(A[name])))
+                if bool(td["next", "done"]):
+                    exits += bool(td["next", "out_of_bounds"])
+                    break
+                td = env.step_mdp(td)
+        env.close()
+        return exits
+
+    assert fly(None) >= 2
+    assert fly("env") == 0

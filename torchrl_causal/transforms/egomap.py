@@ -38,7 +38,11 @@ convention): False for a horizontal move whose clearance is below
 ``min_clearance`` and for a descent that would end below ``FLOOR_MARGIN``
 (0.15 m) of altitude; turns and ascents are always allowed. A policy built
 with ``PolicySpec(shield=True)`` never picks a masked move (a safety shield:
-the map says the hull would not fit).
+the map says the hull would not fit). With a ``geofence`` the mask also
+forbids a horizontal move whose dead-reckoned end lies outside the flight
+area, and an ascent above its ceiling (``"env"``: the ``DroneNavEnv``
+layout's arena and height, read at every reset; a tuple: the area in the
+start frame, as :class:`~torchrl_causal.envs.TelloEnv`'s ``geofence``).
 
 The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
 image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
@@ -99,6 +103,14 @@ class EgoMap(Transform):
         n_actions: size of the action space (actions in
             :data:`~torchrl_causal.schema.ACTION_NAMES` order).
         action_key: the action's key (index or one-hot).
+        geofence: None (default: no fence in the mask); ``"env"``: the base
+            :class:`~torchrl_causal.envs.DroneNavEnv`'s arena and ceiling,
+            read at every reset; or ``(x_min, y_min, x_max, y_max)`` (m) in the
+            start frame (x forward, y left at reset). ``action_mask`` then
+            forbids a horizontal move that would end outside it (less
+            ``geofence_margin``) and, with ``"env"``, an ascent above the
+            ceiling.
+        geofence_margin: how far inside the fence a move must end (m).
 
     Example:
         >>> import torch
@@ -116,7 +128,8 @@ class EgoMap(Transform):
     def __init__(self, size: int = 32, resolution: float = 0.15, *, world_size: float = 20.0,
                  max_range: float = 4.0, band: float = 0.2, step_size: float | None = None,
                  turn_deg: float | None = None, fov_deg: float | None = None,
-                 min_clearance: float = 0.2, n_actions: int = 8, action_key="action"):
+                 min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
+                 geofence=None, geofence_margin: float = 0.1):
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
         _number("resolution", resolution)
@@ -129,6 +142,14 @@ class EgoMap(Transform):
                 _number(name, val)
         if fov_deg is not None and not (isinstance(fov_deg, (int, float)) and 0 < fov_deg < 180):
             raise ValueError(f"EgoMap fov_deg must be in (0, 180), got {fov_deg!r}")
+        if geofence is not None and geofence != "env":
+            ok = isinstance(geofence, (tuple, list)) and len(geofence) == 4 and all(
+                isinstance(v, (int, float)) and math.isfinite(v) for v in geofence)
+            if not ok or not (geofence[0] < 0 < geofence[2] and geofence[1] < 0 < geofence[3]):
+                raise ValueError(f"EgoMap geofence must be None, 'env' or (x_min, y_min, x_max, "
+                                 f"y_max) around the start (x_min < 0 < x_max, y_min < 0 < "
+                                 f"y_max), got {geofence!r}")
+        _number("geofence_margin", geofence_margin, strict=False)
         if world_size < size * resolution:
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
@@ -143,6 +164,9 @@ class EgoMap(Transform):
         self.min_clearance = float(min_clearance)
         self.n_actions = int(n_actions)
         self.action_key = action_key
+        self.geofence = tuple(float(v) for v in geofence) if isinstance(geofence, (tuple, list)) \
+            else geofence
+        self.geofence_margin = float(geofence_margin)
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -175,7 +199,55 @@ class EgoMap(Transform):
             "known": torch.zeros(n, dtype=torch.bool, device=device),
             "since": torch.zeros(n, device=device),
             "alt0": torch.zeros(n, device=device),
+            # the fence: its frame's origin and heading in the start frame, its rectangle
+            # in that frame, its ceiling (inf: none)
+            "fence": self._fence(n, device),
         }
+
+    def _fence(self, n, device):
+        """Per entry ``(x0, y0, yaw0, x_min, y_min, x_max, y_max, ceiling)``: a point ``p``
+        of the start frame lies inside when ``R(yaw0) p + (x0, y0)`` is in the rectangle."""
+        inf = math.inf
+        out = torch.tensor([0.0, 0.0, 0.0, -inf, -inf, inf, inf, inf],
+                           device=device).repeat(n, 1)
+        if self.geofence is None:
+            return out
+        if self.geofence != "env":
+            out[:, 3:7] = torch.tensor(self.geofence, device=device)
+            return out
+        parent = self.parent
+        base = getattr(parent, "base_env", None) if parent is not None else None
+        layout = getattr(base, "layout", None)
+        if layout is None or n != 1:
+            raise ValueError("EgoMap geofence='env' reads the arena of one DroneNavEnv under "
+                             "it (not a batched env); give (x_min, y_min, x_max, y_max) instead")
+        x0, y0, _ = (float(v) for v in layout.start_pos)
+        out[0] = torch.tensor([x0, y0, math.radians(float(layout.start_yaw_deg)),
+                               *(float(v) for v in layout.arena), float(layout.height)],
+                              device=device)
+        return out
+
+    def _fence_mask(self, st, idx, altitude):
+        """``[n, n_actions]``: False where a move ends outside the fence (or above its ceiling)."""
+        n = idx.numel()
+        device = st["pose"].device
+        mask = torch.ones(n, self.n_actions, dtype=torch.bool, device=device)
+        if self.geofence is None:
+            return mask
+        f, pose = st["fence"][idx], st["pose"][idx]
+        d = self._deltas(device)[:4]  # forward, backward, left, right
+        c, s = pose[:, 2].cos(), pose[:, 2].sin()
+        px = pose[:, 0, None] + c[:, None] * d[None, :, 0] - s[:, None] * d[None, :, 1]
+        py = pose[:, 1, None] + s[:, None] * d[None, :, 0] + c[:, None] * d[None, :, 1]
+        fc, fs = f[:, 2].cos()[:, None], f[:, 2].sin()[:, None]
+        wx = f[:, 0, None] + fc * px - fs * py
+        wy = f[:, 1, None] + fs * px + fc * py
+        m = self.geofence_margin
+        mask[:, :4] = ((wx >= f[:, 3, None] + m) & (wx <= f[:, 5, None] - m)
+                       & (wy >= f[:, 4, None] + m) & (wy <= f[:, 6, None] - m))
+        if self.n_actions > 4:  # ascend: not through the ceiling
+            mask[:, 4] = altitude + self._setting("step_size", 0.25) <= f[:, 7] - m
+        return mask
 
     # ------------------------------------------------------------ updates
     def _scan(self, depth):
@@ -344,6 +416,7 @@ class EgoMap(Transform):
         mask[:, :4] = 2.0 * clear >= self.min_clearance  # forward, backward, left, right
         if self.n_actions > 5 and self.min_clearance > 0:  # descend: not into the floor
             mask[:, 5] = altitude - self._setting("step_size", 0.25) >= FLOOR_MARGIN
+        mask &= self._fence_mask(st, idx, altitude)
         return ego, vec, clear, mask
 
     def _set(self, td, ego, vec, clear, mask):
