@@ -135,3 +135,26 @@ def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
     assert "--loop-guard" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="has no config.yaml"):
         ship_policy.ship(tmp_path / "guarded_missing", "y", dest=tmp_path)
+
+
+def test_evaluate_restarts_the_gates_draws_and_puts_them_back():
+    """The V2 gate draws random numbers even in greedy evaluation (it consults its CBNs
+    with probability 0.7): two evaluations of one policy on one seed fly the same episodes,
+    and the gate's own stream is where it was before (an evaluation inside a training run
+    does not move it)."""
+    from torchrl_causal.modules import CBNGate
+
+    policy, env = load_policy("generalist")  # its gate draws from torch's global generator
+    before = torch.get_rng_state()
+    runs = [evaluate(policy, env, 4, seed=7, spl=False) for _ in range(2)]
+    assert runs[0] == runs[1]
+    assert torch.equal(torch.get_rng_state(), before)
+    # a gate with a generator of its own: restarted, then put back
+    gate = CBNGate("v2", seed=3)
+    seeded = torch.nn.ModuleList([gate])  # anything with .modules() holding the gate
+    state = gate.generator.get_state()
+    from torchrl_causal.training.evaluation import _policy_generators
+
+    assert _policy_generators(seeded) == [gate.generator]
+    assert torch.equal(gate.generator.get_state(), state)
+    env.close()

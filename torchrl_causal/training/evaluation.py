@@ -72,6 +72,19 @@ def env_max_steps(env, default: int = 1000) -> int:
     return default
 
 
+def _policy_generators(policy) -> list:
+    """The ``torch.Generator`` s of a policy's modules (e.g. the CBN gate's), in module order."""
+    modules = getattr(policy, "modules", None)
+    if not callable(modules):
+        return []
+    out = []
+    for m in modules():
+        g = getattr(m, "generator", None)
+        if isinstance(g, torch.Generator) and all(g is not h for h in out):
+            out.append(g)
+    return out
+
+
 def _flag(td, key) -> bool:
     val = td.get(key, None)
     return bool(val.any()) if val is not None else False
@@ -135,8 +148,6 @@ def evaluate(
         >>> sorted(res)
         ['collisions', 'mean_length', 'mean_reward', 'out_of_bounds', 'steps_to_goal', 'success_rate']
     """
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes <= 0:
         raise ValueError(f"episodes must be an int > 0, got {episodes!r}")
     keys = {**OUTCOME_KEYS, **(outcome_keys or {})}
@@ -146,6 +157,27 @@ def evaluate(
         raise ValueError("evaluate(spl=True) needs an env over a kinematic DroneNavEnv")
     env.set_seed(int(seed))
     seed_transforms(env, seed)
+    # the policy's own random draws (the CBN gate's, from its generator or from torch's global
+    # one) restart from the seed too, so that two evaluations of one policy on one seed fly
+    # the same episodes; their streams are put back afterwards, so that an evaluation in the
+    # middle of training does not move them
+    generators = _policy_generators(policy)
+    saved = [g.get_state() for g in generators]
+    cuda = list(range(torch.cuda.device_count())) if torch.cuda.is_initialized() else []
+    try:
+        with torch.random.fork_rng(devices=cuda):
+            torch.manual_seed(int(seed))
+            for i, g in enumerate(generators):
+                g.manual_seed(int(seed) + 7919 * (i + 1))
+            return _evaluate(policy, env, episodes, keys, steps, planner, per_episode)
+    finally:
+        for g, state in zip(generators, saved):
+            g.set_state(state)
+
+
+def _evaluate(policy, env, episodes, keys, steps, planner, per_episode) -> dict:
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
     rewards, successes, crashes, exits, lengths, oracle = [], [], [], [], [], []
     from ..envs.oracle import base_drone_env
 
