@@ -53,10 +53,26 @@ def test_bad_input_is_named():
         gb.main(["--episodes", "0"])
 
 
-def test_loop_guard_rows_fly_the_same_episodes_with_the_guard_appended():
-    rows = gb.main(["--pretrained", "generalist", "--episodes", "2", "--settings", "heldout",
-                    "--loop-guard", "--no-oracle"])
+def test_loop_guard_rows_fly_the_same_episodes_with_the_guard_appended(tmp_path):
+    """--loop-guard adds a row with a LoopGuard appended to a run that acts without one
+    (the generalist's run as trained); a policy that has one already gets no second."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from torchrl_causal.pretrained import policy_dir
+
+    run = tmp_path / "seed1"
+    shutil.copytree(policy_dir("generalist"), run)
+    cfg = OmegaConf.load(run / "config.yaml")
+    cfg.features.loop_guard = False
+    OmegaConf.save(cfg, run / "config.yaml")
+    rows = gb.main(["--runs", str(run), "--pretrained", "generalist", "--episodes", "2",
+                    "--settings", "heldout", "--loop-guard", "--no-oracle"])
     runs = [r for r in rows if r["figure"] == "run"]
-    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/loop_guard"]
+    assert [(r["name"], r["variant"]) for r in runs] == [
+        ("seed1", "cbn_v2"), ("seed1", "cbn_v2/loop_guard"), ("pretrained:generalist", "cbn_v2")]
     assert all(r["episodes"] == 2 and r["setting"] == "heldout" for r in runs)
-    assert all(0.0 <= r["success_rate"] <= 1.0 for r in runs)
+    # the guarded row and the shipped (guarded) policy fly the same episodes identically
+    assert runs[1]["success_rate"] == runs[2]["success_rate"]
+    assert runs[1]["mean_length"] == runs[2]["mean_length"]
