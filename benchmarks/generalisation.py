@@ -18,7 +18,9 @@ Prints one JSON object per line:
   with ``--gate-off`` also ``<variant>/gate_off``, the CBN-gated runs flown with the
   gate passing the greedy action through; with ``--loop-guard`` also
   ``<variant>/loop_guard``, the runs flown with a
-  :class:`~torchrl_causal.modules.LoopGuard` appended;
+  :class:`~torchrl_causal.modules.LoopGuard` appended; with ``--flank-margin M``
+  also ``<variant>[/loop_guard]/flankM``, the same policy with its
+  :class:`~torchrl_causal.transforms.EgoMap`'s ``flank_margin`` set to ``M``;
 * ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
   seed-by-seed difference of success against the control, its 95 % t-interval and the
   verdict (helps / hurts / cannot be told apart).
@@ -79,7 +81,8 @@ def scene_env(setting: str, seed: int):
 
 
 def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
-             gate_off: bool = False, loop_guard: bool = False) -> list[dict]:
+             gate_off: bool = False, loop_guard: bool = False,
+             flank_margin: float | None = None) -> list[dict]:
     import train
 
     summary_path = folder / "summary.json"
@@ -101,15 +104,27 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
                                  episodes, seed, off))
         if gate is not None:
             gate.eval_gate = True
+        suffix = ""
         if loop_guard and not any(type(m).__name__ == "LoopGuard" for m in policy):
             from tensordict.nn import TensorDictSequential
 
             from torchrl_causal.modules import LoopGuard
 
             mask = "action_mask" if "action_mask" in env.observation_spec.keys() else None
-            guarded = TensorDictSequential(*policy, LoopGuard(action_mask_key=mask))
-            rows.append(_run_row(name, folder, cfg, summary, prov, guarded, env, setting,
-                                 episodes, seed, False, suffix="/loop_guard"))
+            policy = TensorDictSequential(*policy, LoopGuard(action_mask_key=mask))
+            suffix = "/loop_guard"
+            rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                 episodes, seed, False, suffix=suffix))
+        if flank_margin is not None:
+            from torchrl_causal.transforms import EgoMap
+
+            maps = [t for t in getattr(env, "transform", []) if isinstance(t, EgoMap)]
+            if maps:  # the same policy (guarded if asked), the map's flank margin changed
+                for t in maps:
+                    t.flank_margin = float(flank_margin)
+                rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                     episodes, seed, False,
+                                     suffix=f"{suffix}/flank{flank_margin:g}"))
         env.close()
     return rows
 
@@ -225,12 +240,17 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--loop-guard", action="store_true",
                    help="also evaluate each run without a LoopGuard with one appended "
                         "(variant '<v>/loop_guard'; it needs an action history of >= 4)")
+    p.add_argument("--flank-margin", type=float, default=None, metavar="M",
+                   help="also evaluate each run that builds an EgoMap with its flank_margin set "
+                        "to M metres (variant '<v>[/loop_guard]/flankM', after --loop-guard)")
     p.add_argument("--control", default=None,
                    help="a variant (e.g. dqn_features): paired differences of every other "
                         "variant against it, seed by seed")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
+    if a.flank_margin is not None and not (math.isfinite(a.flank_margin) and a.flank_margin >= 0):
+        p.error(f"--flank-margin must be a finite number >= 0, got {a.flank_margin}")
     folders = [Path(f) for pat in a.runs for f in sorted(glob.glob(pat))]
     missing = [str(f) for f in folders if not (f / "model.pt").is_file()]
     if missing:
@@ -259,7 +279,7 @@ def main(argv=None) -> list[dict]:
         emit(oracle_rows(a.settings, a.episodes, a.seed))
     for name, folder in named:
         emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off,
-                      loop_guard=a.loop_guard))
+                      loop_guard=a.loop_guard, flank_margin=a.flank_margin))
     emit(variant_rows(rows, a.target))
     if a.control:
         emit(paired_rows(rows, a.control))

@@ -33,19 +33,23 @@ def _commit() -> str:
 
 
 def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
-         dest: Path = DEST, loop_guard: bool = False) -> Path:
+         dest: Path = DEST, loop_guard: bool = False,
+         flank_margin: float | None = None) -> Path:
     """Copies the policy of ``run_dir`` to ``dest/name``; returns that folder.
 
     ``loop_guard=True`` ships the policy with a
     :class:`~torchrl_causal.modules.LoopGuard` appended
     (``features.loop_guard=true`` in the shipped config and ``policy.json``);
     ``provenance.json`` records that it was added at shipping time when the run
-    did not act with one.
+    did not act with one. ``flank_margin`` sets the run's
+    :class:`~torchrl_causal.transforms.EgoMap` ``flank_margin`` (m) in the
+    shipped config (``features.ego_map.flank_margin``), recorded the same way.
 
     Raises:
         FileNotFoundError: the run folder lacks ``config.yaml``, ``model.pt`` or
             ``explorer.pt`` (named).
-        ValueError: ``name`` is not a plain folder name.
+        ValueError: ``name`` is not a plain folder name; ``flank_margin`` is
+            negative or the run builds no EgoMap.
     """
     from omegaconf import OmegaConf
 
@@ -66,6 +70,16 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
                     "--loop-guard", True, f"a run with features.history >= 4 ({run_dir})")
         OmegaConf.set_struct(cfg, False)
         cfg.features.loop_guard = True
+    trained_flank = OmegaConf.select(cfg, "features.ego_map.flank_margin", default=None)
+    if flank_margin is not None:
+        ru._require(isinstance(flank_margin, (int, float)) and flank_margin >= 0,
+                    "--flank-margin", flank_margin, "a number of metres >= 0")
+        inputs = set(OmegaConf.select(cfg, "features.inputs", default=[]) or [])
+        ru._require(bool({"goal_memory", "map_clearance", "ego_map"} & inputs), "--flank-margin",
+                    flank_margin, f"a run whose features build an EgoMap ({run_dir})")
+        OmegaConf.set_struct(cfg, False)
+        cfg.features.ego_map = {**OmegaConf.to_container(cfg.features.get("ego_map") or {}),
+                                "flank_margin": float(flank_margin)}
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     provenance = {
@@ -84,6 +98,10 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
     if loop_guard and not trained_with_guard:
         provenance["loop_guard"] = ("added when shipped (ship_policy.py --loop-guard): the run "
                                     "trained and made final_eval without it")
+    if flank_margin is not None and trained_flank != flank_margin:
+        provenance["flank_margin"] = (f"EgoMap flank_margin {flank_margin:g} m set when shipped "
+                                      f"(ship_policy.py --flank-margin); the run trained and made "
+                                      f"final_eval with {trained_flank or 0:g} m")
     spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant], provenance=provenance)
     out = dest / name
     out.mkdir(parents=True, exist_ok=True)
@@ -104,9 +122,13 @@ def main(argv=None):
     p.add_argument("--notes", default="", help="free text for provenance.json")
     p.add_argument("--loop-guard", action="store_true",
                    help="ship with a LoopGuard appended (features.loop_guard=true)")
+    p.add_argument("--flank-margin", type=float, default=None, metavar="M",
+                   help="ship with EgoMap's flank_margin set to M metres "
+                        "(features.ego_map.flank_margin)")
     a = p.parse_args(argv)
     try:
-        out = ship(a.run_dir, a.name, command=a.command, notes=a.notes, loop_guard=a.loop_guard)
+        out = ship(a.run_dir, a.name, command=a.command, notes=a.notes, loop_guard=a.loop_guard,
+                   flank_margin=a.flank_margin)
     except ValueError as e:
         p.error(str(e))
     print(f"Shipped {a.run_dir} as pretrained policy {a.name!r}: {out}")

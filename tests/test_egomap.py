@@ -249,3 +249,31 @@ def test_env_geofence_keeps_a_forward_flier_inside_random_arenas():
 
     assert fly(None) >= 2
     assert fly("env") == 0
+
+
+@pytest.mark.parametrize("layout_index,actions", [
+    (364254564, ["forward"] * 8 + ["left", "forward", "forward"]),
+    (168654339, ["forward"] * 21),
+])
+def test_flank_margin_masks_the_sideways_move_into_an_obstacle_passed_on_its_side(
+        layout_index, actions):
+    """Two crashes of the generalist (validation layouts, docs/results.rst, "Crashes under
+    the shield"), replayed: the drone has flown past an obstacle, whose mapped face is now
+    behind it, and moves right into its unseen side face with the hull's back corner. With
+    the hull's own corridor (flank_margin 0) the map says "right" is free and the move
+    crashes; with flank_margin 0.3 m the mask forbids it, and forward stays allowed."""
+    def fly(margin):
+        env = TransformedEnv(DroneNavEnv("random", split="train", layout_seed=1,
+                                         layout_index=layout_index), EgoMap(flank_margin=margin))
+        td = _fly(env, env.reset(), actions)
+        mask, right = td["action_mask"], 2 * float(td["map_clearance"][3])
+        crashed = bool(env.step(td.set("action", torch.tensor(A["right"])))["next", "crashed"])
+        env.close()
+        return bool(mask[A["right"]]), bool(mask[A["forward"]]), right, crashed
+
+    allowed, forward, right, crashed = fly(0.0)
+    assert allowed and right >= 0.25 and crashed  # the map said there was room: there was not
+    allowed, forward, right, crashed = fly(0.3)
+    assert not allowed and forward and right < 0.2 and crashed  # masked (the same move)
+    with pytest.raises(ValueError, match="flank_margin"):
+        EgoMap(flank_margin=-0.1)

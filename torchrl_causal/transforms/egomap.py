@@ -32,7 +32,9 @@ horizontal distance / 5, and the steps since it was last seen / 50, capped at 1)
 and ``map_clearance`` (float32 ``[..., 4]``: how far the drone's hull can move
 ahead, back, left and right before it meets an obstacle cell of the map, in
 metres / 2, capped at 1 -- a corridor check of the four horizontal moves
-against everything seen so far, also beside and behind the camera's view),
+against everything seen so far, also beside and behind the camera's view; with
+``flank_margin`` a left / right move also counts obstacle cells up to that far
+behind the hull's back edge),
 and ``action_mask`` (bool ``[..., n_actions]``, TorchRL's action-mask
 convention): False for a horizontal move whose clearance is below
 ``min_clearance`` and for a descent that would end below ``FLOOR_MARGIN``
@@ -111,6 +113,13 @@ class EgoMap(Transform):
             ``geofence_margin``) and, with ``"env"``, an ascent above the
             ceiling.
         geofence_margin: how far inside the fence a move must end (m).
+        flank_margin: a left / right move's corridor also reaches this far
+            behind the hull's back edge (m; 0: the hull's own length). The
+            camera looks ahead, so the flank a sideways move sweeps is mapped
+            only from earlier views: a box passed on its side is on the map by
+            its front face, behind the drone, and its unseen side face is what
+            the hull's back corner meets (docs/results.rst, "Crashes under the
+            shield").
 
     Example:
         >>> import torch
@@ -129,7 +138,7 @@ class EgoMap(Transform):
                  max_range: float = 4.0, band: float = 0.2, step_size: float | None = None,
                  turn_deg: float | None = None, fov_deg: float | None = None,
                  min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
-                 geofence=None, geofence_margin: float = 0.1):
+                 geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0):
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
         _number("resolution", resolution)
@@ -150,6 +159,7 @@ class EgoMap(Transform):
                                  f"y_max) around the start (x_min < 0 < x_max, y_min < 0 < "
                                  f"y_max), got {geofence!r}")
         _number("geofence_margin", geofence_margin, strict=False)
+        _number("flank_margin", flank_margin, strict=False)
         if world_size < size * resolution:
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
@@ -167,6 +177,7 @@ class EgoMap(Transform):
         self.geofence = tuple(float(v) for v in geofence) if isinstance(geofence, (tuple, list)) \
             else geofence
         self.geofence_margin = float(geofence_margin)
+        self.flank_margin = float(flank_margin)
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -384,7 +395,11 @@ class EgoMap(Transform):
             left = -yaw.sin() * dx + yaw.cos() * dy
             for k, (along, across) in enumerate(((fwd, left), (-fwd, left), (left, fwd),
                                                  (-left, fwd))):
-                hit = (along > 0) & (across.abs() <= width)
+                if k < 2:
+                    band = across.abs() <= width
+                else:  # a sideways move: the hull's length and flank_margin behind it
+                    band = (across <= width) & (across >= -width - self.flank_margin)
+                hit = (along > 0) & band
                 if hit.any():
                     gap = along[hit].min() - self.resolution / 2 - DRONE_HALF_WIDTH
                     out[row, k] = (gap.clamp(min=0.0) / 2.0).clamp(max=1.0)
