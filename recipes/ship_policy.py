@@ -78,8 +78,9 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         ru._require(bool({"goal_memory", "map_clearance", "ego_map"} & inputs), "--flank-margin",
                     flank_margin, f"a run whose features build an EgoMap ({run_dir})")
         OmegaConf.set_struct(cfg, False)
-        cfg.features.ego_map = {**OmegaConf.to_container(cfg.features.get("ego_map") or {}),
-                                "flank_margin": float(flank_margin)}
+        kwargs = OmegaConf.select(cfg, "features.ego_map", default=None)
+        kwargs = OmegaConf.to_container(kwargs) if kwargs is not None else {}
+        cfg.features.ego_map = {**kwargs, "flank_margin": float(flank_margin)}
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     provenance = {

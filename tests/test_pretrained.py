@@ -135,6 +135,21 @@ def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
     assert "--loop-guard" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="has no config.yaml"):
         ship_policy.ship(tmp_path / "guarded_missing", "y", dest=tmp_path)
+    # --flank-margin: the shipped stack's EgoMap gets it, and provenance says so
+    out = ship_policy.ship(run, "flanked", dest=tmp_path, loop_guard=True, flank_margin=0.3)
+    spec = json.loads((out / "policy.json").read_text())
+    assert spec["ego_map"]["flank_margin"] == 0.3
+    assert "flank_margin" in json.loads((out / "provenance.json").read_text())
+    policy, env, _ = load_policy_dir(out, env=DroneNavEnv("random", split="heldout", seed=0))
+    maps = [t for t in env.transform if type(t).__name__ == "EgoMap"]
+    assert len(maps) == 1 and maps[0].flank_margin == 0.3
+    env.close()
+    with pytest.raises(SystemExit):
+        ship_policy.main([str(run), "x", "--flank-margin", "-1"])
+    assert "--flank-margin" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # the thesis policy builds no map
+        ship_policy.main([str(policy_dir("thesis")), "x", "--flank-margin", "0.3"])
+    assert "EgoMap" in capsys.readouterr().err
 
 
 def test_evaluate_restarts_the_gates_draws_and_puts_them_back():
