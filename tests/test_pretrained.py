@@ -119,6 +119,7 @@ def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
     shutil.copytree(policy_dir("generalist"), run)
     cfg = OmegaConf.load(run / "config.yaml")
     cfg.features.loop_guard = False
+    cfg.features.ego_map = {}  # nor the flank margin
     OmegaConf.save(cfg, run / "config.yaml")
     out = ship_policy.ship(run, "guarded", dest=tmp_path, loop_guard=True)
     spec = json.loads((out / "policy.json").read_text())
