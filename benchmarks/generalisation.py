@@ -11,8 +11,10 @@ Prints one JSON object per line:
   on the same episodes -- success 1.0 and SPL 1.0 by construction, its mean plan length;
 * ``figure="run"``: one per run folder (or ``--pretrained`` name) and setting
   (``heldout``, ``thesis``): success rate with its 95 % Wilson interval, SPL, crash
-  rate, geofence exits, mean steps, the run's frames (DQN and teacher phases) and
-  training wall time;
+  rate, geofence exits, mean steps, success split by whether the goal was in view at
+  the start (``goal_hidden_at_start`` episodes, ``success_goal_hidden`` /
+  ``success_goal_visible``; None where the policy's stack has no ``goal_in_sight``),
+  the run's frames (DQN and teacher phases) and training wall time;
 * ``figure="variant"``: per variant and setting over its runs (seeds): mean success,
   its 95 % t-interval over seeds, how many seeds reach ``--target`` (0.9), mean SPL;
   with ``--gate-off`` also ``<variant>/gate_off``, the CBN-gated runs flown with the
@@ -135,8 +137,9 @@ def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, s
 
     t0 = time.perf_counter()
     n = episodes if setting == "heldout" else min(episodes, 20)
-    res = evaluate(policy, env, n, seed=seed)
+    res = evaluate(policy, env, n, seed=seed, per_episode=True)
     k = int(round(res["success_rate"] * n))
+    split = _split_by_start_view(res["episodes"])
     lo, hi = wilson(k, n)
     return {
         "bench": "generalisation", "figure": "run", "name": name, "run": str(folder),
@@ -148,13 +151,26 @@ def _run_row(name, folder, cfg, summary, prov, policy, env, setting, episodes, s
         "success_rate": res["success_rate"], "ci95": [round(lo, 4), round(hi, 4)],
         "spl": res.get("spl"), "crash_rate": res["collisions"] / n,
         "out_of_bounds": res["out_of_bounds"], "mean_length": res["mean_length"],
-        "oracle_steps": res.get("oracle_steps"),
+        "oracle_steps": res.get("oracle_steps"), **split,
         "frames": summary.get("frames", prov.get("frames")),
         "teacher_frames": (summary.get("teacher") or prov.get("teacher") or {}).get("frames", 0),
         "train_seconds": (summary.get("loop_seconds") or 0)
         + ((summary.get("teacher") or {}).get("seconds") or 0),
         "eval_seconds": round(time.perf_counter() - t0, 1),
     }
+
+
+def _split_by_start_view(episodes: list[dict]) -> dict:
+    """Success of the episodes that start with the goal hidden / in view."""
+    views = [ep.get("goal_in_view_at_start") for ep in episodes]
+    if any(v is None for v in views):
+        return {"goal_hidden_at_start": None, "success_goal_hidden": None,
+                "success_goal_visible": None}
+    hidden = [ep["success"] for ep, v in zip(episodes, views) if not v]
+    shown = [ep["success"] for ep, v in zip(episodes, views) if v]
+    return {"goal_hidden_at_start": len(hidden),
+            "success_goal_hidden": sum(hidden) / len(hidden) if hidden else None,
+            "success_goal_visible": sum(shown) / len(shown) if shown else None}
 
 
 def oracle_rows(settings, episodes: int, seed: int) -> list[dict]:

@@ -22,6 +22,9 @@ def test_shipped_thesis_policy_rows_with_the_gate_on_and_off(tmp_path):
     assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/gate_off"]
     assert all(r["episodes"] == 2 and r["setting"] == "thesis" for r in runs)
     assert runs[0]["success_rate"] == 1.0  # the thesis policy flies its scene, gate on
+    # the thesis scene starts with the goal in view: no hidden-start episodes to split off
+    assert runs[0]["goal_hidden_at_start"] == 0
+    assert runs[0]["success_goal_hidden"] is None and runs[0]["success_goal_visible"] == 1.0
     paired = [r for r in rows if r["figure"] == "paired"]
     assert len(paired) == 1 and paired[0]["n_pairs"] == 1
     assert paired[0]["verdict"] == "cannot be told apart"  # one pair: no interval
@@ -76,3 +79,6 @@ def test_loop_guard_rows_fly_the_same_episodes_with_the_guard_appended(tmp_path)
     # the guarded row and the shipped (guarded) policy fly the same episodes identically
     assert runs[1]["success_rate"] == runs[2]["success_rate"]
     assert runs[1]["mean_length"] == runs[2]["mean_length"]
+    # the split by the goal's visibility at the start counts the same episodes in every row
+    assert len({r["goal_hidden_at_start"] for r in runs}) == 1
+    assert runs[0]["goal_hidden_at_start"] in (0, 1, 2)

@@ -136,6 +136,8 @@ def test_evaluate_reports_spl():
     res = evaluate(OraclePolicy(env), env, episodes=2, seed=0, per_episode=True)
     assert res["success_rate"] == 1.0 and res["spl"] == 1.0 and res["oracle_steps"] == 12.0
     assert [e["steps"] for e in res["episodes"]] == [12, 12]
+    # the thesis scene's start sees the goal (the causal stack writes goal_in_sight)
+    assert [e["goal_in_view_at_start"] for e in res["episodes"]] == [True, True]
 
     def spin(td):  # never reaches: SPL 0
         return td.set("action", torch.tensor(6))
@@ -156,6 +158,10 @@ def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path):
     res = evaluate(forward, env, episodes=2, seed=0, per_episode=True, max_steps=30)
     eps = res["episodes"]
     assert all(len(e["path"]) == e["steps"] + 1 for e in eps)
+    # DroneNavEnv writes its own goal_in_sight: each episode says whether its start saw the goal
+    assert all(isinstance(e["goal_in_view_at_start"], bool) for e in eps)
+    env.set_seed(0)  # as evaluate seeds it: the same first start
+    assert bool(env.reset()["goal_in_sight"]) == eps[0]["goal_in_view_at_start"]
     assert all(e["oracle_plan"] and len(e["oracle_plan"]) == e["oracle_steps"] for e in eps)
     ax = plot_flight_map(eps[:1], path=tmp_path / "one.png")
     kinds = {line.get_label() for line in ax.get_lines()}

@@ -121,7 +121,9 @@ def evaluate(
             :class:`~torchrl_causal.envs.DroneNavEnv`.
         per_episode: also return ``episodes``: one dict per episode
             (``success``, ``crash``, ``out_of_bounds``, ``steps``, ``reward``,
-            ``oracle_steps``, ``spl``; over a ``DroneNavEnv`` also ``layout``
+            ``oracle_steps``, ``spl``, ``goal_in_view_at_start`` -- whether the
+            reset's ``goal_in_sight`` feature was set, None where the env does
+            not write it; over a ``DroneNavEnv`` also ``layout``
             and ``path``, the drone's ``(x, y, z, yaw_deg)`` before every step
             and at the end, and ``oracle_plan``, the oracle's actions from the
             start -- what :func:`~torchrl_causal.training.flightmap.plot_flight_map`
@@ -179,6 +181,7 @@ def _evaluate(policy, env, episodes, keys, steps, planner, per_episode) -> dict:
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     rewards, successes, crashes, exits, lengths, oracle = [], [], [], [], [], []
+    in_view = []  # goal_in_sight at the reset (None: the env does not write it)
     from ..envs.oracle import base_drone_env
 
     base = base_drone_env(env) if per_episode else None
@@ -191,6 +194,8 @@ def _evaluate(policy, env, episodes, keys, steps, planner, per_episode) -> dict:
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(episodes):
             start = env.reset()
+            seen = start.get("goal_in_sight", None)
+            in_view.append(None if seen is None else bool(seen.reshape(-1)[0]))
             if planner is not None:
                 plan = _oracle_plan(planner)
                 oracle.append(float(len(plan)) if plan is not None else float("nan"))
@@ -227,7 +232,7 @@ def _evaluate(policy, env, episodes, keys, steps, planner, per_episode) -> dict:
         out["episodes"] = [
             {"success": ok, "crash": c, "out_of_bounds": o, "steps": p, "reward": r,
              "oracle_steps": oracle[i] if oracle else float("nan"),
-             "spl": spls[i] if spls else float("nan")}
+             "spl": spls[i] if spls else float("nan"), "goal_in_view_at_start": in_view[i]}
             for i, (ok, c, o, p, r) in enumerate(zip(successes, crashes, exits, lengths, rewards))
         ]
         for i, ep in enumerate(out["episodes"]):
