@@ -22,7 +22,9 @@ Prints one JSON object per line:
   ``<variant>/loop_guard``, the runs flown with a
   :class:`~torchrl_causal.modules.LoopGuard` appended; with ``--flank-margin M``
   also ``<variant>[/loop_guard]/flankM``, the same policy with its
-  :class:`~torchrl_causal.transforms.EgoMap`'s ``flank_margin`` set to ``M``;
+  :class:`~torchrl_causal.transforms.EgoMap`'s ``flank_margin`` set to ``M``; with
+  ``--goal-prior D`` also ``<variant>[/loop_guard][/flankM]/priorD``, with the map's
+  ``goal_prior`` (a hidden goal guessed ``D`` m ahead of the start) set to ``D`` as well;
 * ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
   seed-by-seed difference of success against the control, its 95 % t-interval and the
   verdict (helps / hurts / cannot be told apart).
@@ -84,7 +86,8 @@ def scene_env(setting: str, seed: int):
 
 def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
              gate_off: bool = False, loop_guard: bool = False,
-             flank_margin: float | None = None) -> list[dict]:
+             flank_margin: float | None = None,
+             goal_prior: float | None = None) -> list[dict]:
     import train
 
     summary_path = folder / "summary.json"
@@ -124,9 +127,18 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
             if maps:  # the same policy (guarded if asked), the map's flank margin changed
                 for t in maps:
                     t.flank_margin = float(flank_margin)
+                suffix = f"{suffix}/flank{flank_margin:g}"
                 rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
-                                     episodes, seed, False,
-                                     suffix=f"{suffix}/flank{flank_margin:g}"))
+                                     episodes, seed, False, suffix=suffix))
+        if goal_prior is not None:
+            from torchrl_causal.transforms import EgoMap
+
+            maps = [t for t in getattr(env, "transform", []) if isinstance(t, EgoMap)]
+            if maps:  # the same policy (and flank margin, if asked), a hidden goal guessed ahead
+                for t in maps:
+                    t.goal_prior = float(goal_prior)
+                rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                     episodes, seed, False, suffix=f"{suffix}/prior{goal_prior:g}"))
         env.close()
     return rows
 
@@ -259,6 +271,10 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--flank-margin", type=float, default=None, metavar="M",
                    help="also evaluate each run that builds an EgoMap with its flank_margin set "
                         "to M metres (variant '<v>[/loop_guard]/flankM', after --loop-guard)")
+    p.add_argument("--goal-prior", type=float, default=None, metavar="D",
+                   help="also evaluate each run that builds an EgoMap with its goal_prior set to "
+                        "D metres (a goal the start does not see is guessed D m ahead; variant "
+                        "'<v>[/loop_guard][/flankM]/priorD', after --flank-margin)")
     p.add_argument("--control", default=None,
                    help="a variant (e.g. dqn_features): paired differences of every other "
                         "variant against it, seed by seed")
@@ -267,6 +283,8 @@ def main(argv=None) -> list[dict]:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.flank_margin is not None and not (math.isfinite(a.flank_margin) and a.flank_margin >= 0):
         p.error(f"--flank-margin must be a finite number >= 0, got {a.flank_margin}")
+    if a.goal_prior is not None and not (math.isfinite(a.goal_prior) and 0 < a.goal_prior < 9):
+        p.error(f"--goal-prior must be a distance in (0, 9) m, got {a.goal_prior}")
     folders = [Path(f) for pat in a.runs for f in sorted(glob.glob(pat))]
     missing = [str(f) for f in folders if not (f / "model.pt").is_file()]
     if missing:
@@ -295,7 +313,8 @@ def main(argv=None) -> list[dict]:
         emit(oracle_rows(a.settings, a.episodes, a.seed))
     for name, folder in named:
         emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off,
-                      loop_guard=a.loop_guard, flank_margin=a.flank_margin))
+                      loop_guard=a.loop_guard, flank_margin=a.flank_margin,
+                      goal_prior=a.goal_prior))
     emit(variant_rows(rows, a.target))
     if a.control:
         emit(paired_rows(rows, a.control))

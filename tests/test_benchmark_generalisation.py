@@ -82,3 +82,17 @@ def test_loop_guard_rows_fly_the_same_episodes_with_the_guard_appended(tmp_path)
     # the split by the goal's visibility at the start counts the same episodes in every row
     assert len({r["goal_hidden_at_start"] for r in runs}) == 1
     assert runs[0]["goal_hidden_at_start"] in (0, 1, 2)
+
+
+def test_goal_prior_rows_fly_the_same_episodes_with_a_guessed_hidden_goal():
+    rows = gb.main(["--pretrained", "generalist", "--episodes", "2", "--settings", "heldout",
+                    "--goal-prior", "4", "--no-oracle"])
+    runs = [r for r in rows if r["figure"] == "run"]
+    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/prior4"]
+    assert runs[0]["goal_hidden_at_start"] == runs[1]["goal_hidden_at_start"]
+    # a goal in view at the start is flown identically: the prior only fills in a hidden one
+    if runs[0]["goal_hidden_at_start"] == 0:
+        assert runs[0]["mean_length"] == runs[1]["mean_length"]
+    for bad in ("0", "-1", "nan", "12"):
+        with pytest.raises(SystemExit):
+            gb.main(["--pretrained", "generalist", "--goal-prior", bad])

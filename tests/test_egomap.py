@@ -277,3 +277,36 @@ def test_flank_margin_masks_the_sideways_move_into_an_obstacle_passed_on_its_sid
     assert not allowed and forward and right < 0.2 and crashed  # masked (the same move)
     with pytest.raises(ValueError, match="flank_margin"):
         EgoMap(flank_margin=-0.1)
+
+
+def test_goal_prior_guesses_a_hidden_goal_ahead_until_the_goal_is_seen():
+    env = TransformedEnv(DroneNavEnv("random", split="heldout", image_size=48, seed=0),
+                         EgoMap(goal_prior=4.0))
+    plain = TransformedEnv(DroneNavEnv("random", split="heldout", image_size=48, seed=0),
+                           EgoMap())
+    env.set_seed(3)
+    plain.set_seed(3)
+    hidden = shown = 0
+    for _ in range(12):
+        td, ref = env.reset(), plain.reset()
+        if bool(td["goal_in_sight"]):  # a goal in view is mapped where it is: no guess
+            shown += 1
+            assert torch.equal(td["goal_memory"], ref["goal_memory"])
+            continue
+        hidden += 1
+        assert ref["goal_memory"][0] == 0  # without the prior: nothing known
+        # the guess: 4 m straight ahead (forward / 5 m = 0.8), at the start's height, old (1.0)
+        assert torch.allclose(td["goal_memory"], torch.tensor([1.0, 0.8, 0.0, 0.0, 0.8, 1.0]))
+        assert td["ego_map"][2].any()  # and the goal channel marks it
+        nxt = env.step(td.set("action", torch.tensor(A["turn_left"])))["next"]
+        if not bool(nxt["goal_in_sight"]):  # turned left 15 deg: the guess is now right of ahead
+            fwd, left = nxt["goal_memory"][1] * 5, nxt["goal_memory"][2] * 5
+            assert abs(math.degrees(math.atan2(float(left), float(fwd))) + 15.0) < 0.5
+    assert hidden >= 2 and shown >= 1
+    check_env_specs(TransformedEnv(SerialEnv(2, lambda: DroneNavEnv("random", image_size=48,
+                                                                      seed=0)),
+                                   EgoMap(size=16, resolution=0.2, goal_prior=3.0)), seed=0)
+    with pytest.raises(ValueError, match="goal_prior"):
+        EgoMap(goal_prior=-1.0)
+    with pytest.raises(ValueError, match="goal_prior must lie inside the map"):
+        EgoMap(goal_prior=12.0)

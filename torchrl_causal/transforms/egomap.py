@@ -120,6 +120,15 @@ class EgoMap(Transform):
             its front face, behind the drone, and its unseen side face is what
             the hull's back corner meets (docs/results.rst, "Crashes under the
             shield").
+        goal_prior: None (default), or a distance (m): where the reset does
+            not see the goal, ``goal_memory`` starts from a guess -- the goal
+            ``goal_prior`` metres straight ahead, at the start's height, last
+            "seen" 50 steps ago (its age capped) -- until the goal is really
+            seen. A prior for set-ups that start the drone facing the goal (the
+            random layouts start it within 25 deg of the goal's bearing; the
+            thesis and a Tello flight start it facing the board), so that a goal
+            hidden behind the first obstacle is searched for ahead rather than
+            anywhere (docs/results.rst, "Searching for a hidden goal").
 
     Example:
         >>> import torch
@@ -138,7 +147,8 @@ class EgoMap(Transform):
                  max_range: float = 4.0, band: float = 0.2, step_size: float | None = None,
                  turn_deg: float | None = None, fov_deg: float | None = None,
                  min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
-                 geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0):
+                 geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0,
+                 goal_prior: float | None = None):
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
         _number("resolution", resolution)
@@ -160,6 +170,11 @@ class EgoMap(Transform):
                                  f"y_max), got {geofence!r}")
         _number("geofence_margin", geofence_margin, strict=False)
         _number("flank_margin", flank_margin, strict=False)
+        if goal_prior is not None:
+            _number("goal_prior", goal_prior)
+            if goal_prior > max(world_size / 2 - 1.0, 0.0):
+                raise ValueError(f"EgoMap goal_prior must lie inside the map (< world_size / 2 "
+                                 f"- 1 = {world_size / 2 - 1:g} m), got {goal_prior!r}")
         if world_size < size * resolution:
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
@@ -178,6 +193,7 @@ class EgoMap(Transform):
             else geofence
         self.geofence_margin = float(geofence_margin)
         self.flank_margin = float(flank_margin)
+        self.goal_prior = None if goal_prior is None else float(goal_prior)
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -405,6 +421,14 @@ class EgoMap(Transform):
                     out[row, k] = (gap.clamp(min=0.0) / 2.0).clamp(max=1.0)
         return out
 
+    @staticmethod
+    def _altitude(td, idx):
+        val = td.get("altitude", None)
+        if val is None:
+            return torch.zeros(idx.numel())
+        batch = td.batch_size
+        return val.reshape(val.shape[: len(batch)].numel(), -1)[idx][:, 0].float()
+
     def _observe(self, td, idx, st):
         depth = td.get("depth")
         batch = td.batch_size
@@ -417,8 +441,7 @@ class EgoMap(Transform):
                 return None
             return val.reshape(val.shape[: len(batch)].numel(), -1)[idx]
 
-        altitude = flat("altitude")
-        altitude = altitude[:, 0].float() if altitude is not None else torch.zeros(idx.numel())
+        altitude = self._altitude(td, idx)
         self._write(st, idx, depth)
         sight = flat("goal_in_sight")[:, 0].bool()
         dist = torch.nan_to_num(flat("goal_distance")[:, 0].float(), nan=0.0)
@@ -460,6 +483,7 @@ class EgoMap(Transform):
                 self._state[key][sel] = val
         else:
             self._state = self._fresh(n, device)
+            sel = idx
         alt = tensordict_reset.get("altitude", None)
         if alt is not None:
             alt = alt.reshape(n, -1)[:, 0].float()
@@ -468,7 +492,17 @@ class EgoMap(Transform):
                 self._state["alt0"][m] = alt[m]
             else:
                 self._state["alt0"] = alt.clone()
-        return self._set(tensordict_reset, *self._observe(tensordict_reset, idx, self._state))
+        out = self._observe(tensordict_reset, idx, self._state)
+        if self.goal_prior is not None:
+            st = self._state
+            guess = sel[~st["known"][sel]]  # reset entries that do not see the goal
+            if guess.numel():
+                st["goal"][guess] = torch.tensor([self.goal_prior, 0.0, 0.0], device=device)
+                st["known"][guess] = True
+                st["since"][guess] = 50.0
+                out = (*self._outputs(st, idx, self._altitude(tensordict_reset, idx))[:2],
+                       *out[2:])
+        return self._set(tensordict_reset, *out)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = next_tensordict.batch_size
