@@ -120,10 +120,10 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
             suffix = "/loop_guard"
             rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
                                  episodes, seed, False, suffix=suffix))
-        if flank_margin is not None:
-            from torchrl_causal.transforms import EgoMap
+        from torchrl_causal.transforms import EgoMap
 
-            maps = [t for t in getattr(env, "transform", []) if isinstance(t, EgoMap)]
+        maps = [t for t in getattr(env, "transform", []) if isinstance(t, EgoMap)]
+        if flank_margin is not None:
             if maps:  # the same policy (guarded if asked), the map's flank margin changed
                 for t in maps:
                     t.flank_margin = float(flank_margin)
@@ -131,9 +131,6 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
                 rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
                                      episodes, seed, False, suffix=suffix))
         if goal_prior is not None:
-            from torchrl_causal.transforms import EgoMap
-
-            maps = [t for t in getattr(env, "transform", []) if isinstance(t, EgoMap)]
             if maps:  # the same policy (and flank margin, if asked), a hidden goal guessed ahead
                 for t in maps:
                     t.goal_prior = float(goal_prior)

@@ -421,15 +421,7 @@ class EgoMap(Transform):
                     out[row, k] = (gap.clamp(min=0.0) / 2.0).clamp(max=1.0)
         return out
 
-    @staticmethod
-    def _altitude(td, idx):
-        val = td.get("altitude", None)
-        if val is None:
-            return torch.zeros(idx.numel())
-        batch = td.batch_size
-        return val.reshape(val.shape[: len(batch)].numel(), -1)[idx][:, 0].float()
-
-    def _observe(self, td, idx, st):
+    def _observe(self, td, idx, st, fresh=None):
         depth = td.get("depth")
         batch = td.batch_size
         depth = depth.reshape(-1, *depth.shape[len(batch):])[idx].float()
@@ -441,7 +433,8 @@ class EgoMap(Transform):
                 return None
             return val.reshape(val.shape[: len(batch)].numel(), -1)[idx]
 
-        altitude = self._altitude(td, idx)
+        altitude = flat("altitude")
+        altitude = altitude[:, 0].float() if altitude is not None else torch.zeros(idx.numel())
         self._write(st, idx, depth)
         sight = flat("goal_in_sight")[:, 0].bool()
         dist = torch.nan_to_num(flat("goal_distance")[:, 0].float(), nan=0.0)
@@ -449,6 +442,12 @@ class EgoMap(Transform):
         box = flat("goal_box")
         self._update_goal(st, idx, sight, dist, angle, None if box is None else box.float(),
                           altitude, hw)
+        if fresh is not None and self.goal_prior is not None:
+            # just reset and the goal not in view: the guess straight ahead (see goal_prior)
+            guess = fresh[~st["known"][fresh]]
+            st["goal"][guess] = torch.tensor([self.goal_prior, 0.0, 0.0], device=st["goal"].device)
+            st["known"][guess] = True
+            st["since"][guess] = 50.0
         ego, vec, clear = self._outputs(st, idx, altitude)
         mask = torch.ones(idx.numel(), self.n_actions, dtype=torch.bool, device=clear.device)
         mask[:, :4] = 2.0 * clear >= self.min_clearance  # forward, backward, left, right
@@ -492,17 +491,8 @@ class EgoMap(Transform):
                 self._state["alt0"][m] = alt[m]
             else:
                 self._state["alt0"] = alt.clone()
-        out = self._observe(tensordict_reset, idx, self._state)
-        if self.goal_prior is not None:
-            st = self._state
-            guess = sel[~st["known"][sel]]  # reset entries that do not see the goal
-            if guess.numel():
-                st["goal"][guess] = torch.tensor([self.goal_prior, 0.0, 0.0], device=device)
-                st["known"][guess] = True
-                st["since"][guess] = 50.0
-                out = (*self._outputs(st, idx, self._altitude(tensordict_reset, idx))[:2],
-                       *out[2:])
-        return self._set(tensordict_reset, *out)
+        return self._set(tensordict_reset,
+                         *self._observe(tensordict_reset, idx, self._state, fresh=sel))
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         batch = next_tensordict.batch_size
