@@ -16,6 +16,7 @@ concatenated into ``policy_features`` by TorchRL's ``CatTensors``.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -82,6 +83,10 @@ class PolicySpec:
         loop_guard: append :class:`~torchrl_causal.modules.LoopGuard` after the
             explorer: the policy never repeats a two-move loop
             (``A, inv(A), A, inv(A)``); needs ``history >= 4``.
+        goal_search: 0 (off), or a distance (m): append
+            :class:`~torchrl_causal.modules.GoalSearch` last -- until the goal
+            has been in view, the drone flies round its map's obstacles towards
+            a point this far ahead of its start; needs an EgoMap input.
         provenance: free-form record (command, seed, frames, commit, figures).
 
     Example:
@@ -107,6 +112,7 @@ class PolicySpec:
     ego_map: dict = field(default_factory=dict)
     shield: bool = False
     loop_guard: bool = False
+    goal_search: float = 0.0
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -129,6 +135,14 @@ class PolicySpec:
         if self.loop_guard and not (isinstance(self.history, int) and self.history >= 4):
             raise ValueError(f"PolicySpec.loop_guard=True reads the last four actions: it needs "
                              f"history >= 4, got {self.history!r}")
+        gs = self.goal_search
+        if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not math.isfinite(gs) \
+                or gs < 0:
+            raise ValueError(f"PolicySpec.goal_search must be 0 (off) or a distance > 0 (m), "
+                             f"got {gs!r}")
+        if gs > 0 and not self.uses_ego_map:
+            raise ValueError("PolicySpec.goal_search needs EgoMap's map and pose: give an input "
+                             "among 'ego_map', 'goal_memory', 'map_clearance'")
         if "feature_history" in self.inputs and not (isinstance(self.frames, int)
                                                      and self.frames >= 2):
             raise ValueError(f"PolicySpec.frames must be an int >= 2 when 'feature_history' "
@@ -362,7 +376,8 @@ def load_policy_dir(folder, *, env=None, device="cpu"):
 
 def policy_guards(spec: PolicySpec) -> list:
     """The modules placed after the explorer (a :class:`~torchrl_causal.modules.LoopGuard`
-    when ``spec.loop_guard``), at acting time, in training and evaluation alike.
+    when ``spec.loop_guard``, then a :class:`~torchrl_causal.modules.GoalSearch` when
+    ``spec.goal_search``), at acting time, in training and evaluation alike.
 
     Example:
         >>> spec = PolicySpec(inputs=["causal_features", "action_history"], history=4,
@@ -370,8 +385,12 @@ def policy_guards(spec: PolicySpec) -> list:
         >>> [type(m).__name__ for m in policy_guards(spec)]
         ['LoopGuard']
     """
-    if not spec.loop_guard:
-        return []
-    from ..modules import LoopGuard
+    from ..modules import GoalSearch, LoopGuard
 
-    return [LoopGuard(spec.n_actions, action_mask_key="action_mask" if spec.shield else None)]
+    mask_key = "action_mask" if spec.shield else None
+    out = [LoopGuard(spec.n_actions, action_mask_key=mask_key)] if spec.loop_guard else []
+    if spec.goal_search:
+        out.append(GoalSearch(spec.goal_search,
+                              resolution=float(spec.ego_map.get("resolution", 0.15)),
+                              action_mask_key=mask_key))
+    return out

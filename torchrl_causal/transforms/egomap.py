@@ -35,6 +35,12 @@ metres / 2, capped at 1 -- a corridor check of the four horizontal moves
 against everything seen so far, also beside and behind the camera's view; with
 ``flank_margin`` a left / right move also counts obstacle cells up to that far
 behind the hull's back edge),
+``ego_pose`` (float32 ``[..., 3]``: the dead-reckoned pose in the start
+frame -- x ahead and y to the left of the start, in metres, and the yaw in
+radians -- for a planner on the map, e.g.
+:class:`~torchrl_causal.modules.GoalSearch`), ``goal_seen`` (bool
+``[..., 1]``: the goal has really been in view this episode; a
+``goal_prior`` guess does not count),
 and ``action_mask`` (bool ``[..., n_actions]``, TorchRL's action-mask
 convention): False for a horizontal move whose clearance is below
 ``min_clearance`` and for a descent that would end below ``FLOOR_MARGIN``
@@ -58,7 +64,7 @@ import math
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
-from torchrl.data import Binary, Bounded
+from torchrl.data import Binary, Bounded, Unbounded
 from torchrl.envs.transforms import Transform
 
 __all__ = ["EgoMap", "GOAL_MEMORY_FIELDS", "CLEARANCE_FIELDS"]
@@ -179,7 +185,8 @@ class EgoMap(Transform):
             raise ValueError(f"EgoMap world_size ({world_size!r} m) must cover the window "
                              f"(size * resolution = {size * resolution:g} m)")
         super().__init__(in_keys=["depth", "goal_in_sight", "goal_distance", "goal_angle"],
-                         out_keys=["ego_map", "goal_memory", "map_clearance", "action_mask"])
+                         out_keys=["ego_map", "goal_memory", "map_clearance", "action_mask",
+                                   "ego_pose", "goal_seen"])
         self.size = int(size)
         self.resolution = float(resolution)
         self.cells = int(math.ceil(world_size / resolution))
@@ -224,6 +231,7 @@ class EgoMap(Transform):
             "free": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
             "goal": torch.zeros(n, 3, device=device),  # x, y, z-above-start-camera
             "known": torch.zeros(n, dtype=torch.bool, device=device),
+            "seen": torch.zeros(n, dtype=torch.bool, device=device),  # known, not a guess
             "since": torch.zeros(n, device=device),
             "alt0": torch.zeros(n, device=device),
             # the fence: its frame's origin and heading in the start frame, its rectangle
@@ -350,6 +358,7 @@ class EgoMap(Transform):
         sel = idx[sight]
         st["goal"][sel] = new[sight]
         st["known"][sel] = True
+        st["seen"][sel] = True
         st["since"][sel] = 0.0
 
     # ------------------------------------------------------------ outputs
@@ -454,10 +463,12 @@ class EgoMap(Transform):
         if self.n_actions > 5 and self.min_clearance > 0:  # descend: not into the floor
             mask[:, 5] = altitude - self._setting("step_size", 0.25) >= FLOOR_MARGIN
         mask &= self._fence_mask(st, idx, altitude)
-        return ego, vec, clear, mask
+        return ego, vec, clear, mask, st["pose"][idx].clone(), st["seen"][idx, None].clone()
 
-    def _set(self, td, ego, vec, clear, mask):
+    def _set(self, td, ego, vec, clear, mask, pose, seen):
         batch = td.batch_size
+        td.set("ego_pose", pose.reshape(*batch, 3).to(td.device or pose.device))
+        td.set("goal_seen", seen.reshape(*batch, 1).to(td.device or seen.device))
         td.set("map_clearance", clear.reshape(*batch, 4).to(td.device or clear.device))
         td.set("action_mask", mask.reshape(*batch, self.n_actions).to(td.device or mask.device))
         td.set("ego_map", ego.reshape(*batch, *ego.shape[1:]).to(td.device or ego.device))
@@ -531,4 +542,8 @@ class EgoMap(Transform):
         observation_spec["map_clearance"] = Bounded(0.0, 1.0, shape=(*shape, 4),
                                                     dtype=torch.float32,
                                                     device=observation_spec.device)
+        observation_spec["ego_pose"] = Unbounded(shape=(*shape, 3), dtype=torch.float32,
+                                                 device=observation_spec.device)
+        observation_spec["goal_seen"] = Binary(n=1, shape=(*shape, 1), dtype=torch.bool,
+                                               device=observation_spec.device)
         return observation_spec
