@@ -25,6 +25,8 @@ Prints one JSON object per line:
   :class:`~torchrl_causal.transforms.EgoMap`'s ``flank_margin`` set to ``M``; with
   ``--goal-prior D`` also ``<variant>[/loop_guard][/flankM]/priorD``, with the map's
   ``goal_prior`` (a hidden goal guessed ``D`` m ahead of the start) set to ``D`` as well;
+  with ``--goal-search D`` also ``<variant>[/loop_guard][/flankM]/searchD``, the same policy
+  with a :class:`~torchrl_causal.modules.GoalSearch` appended (no prior);
 * ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
   seed-by-seed difference of success against the control, its 95 % t-interval and the
   verdict (helps / hurts / cannot be told apart).
@@ -87,7 +89,8 @@ def scene_env(setting: str, seed: int):
 def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
              gate_off: bool = False, loop_guard: bool = False,
              flank_margin: float | None = None,
-             goal_prior: float | None = None) -> list[dict]:
+             goal_prior: float | None = None,
+             goal_search: float | None = None) -> list[dict]:
     import train
 
     summary_path = folder / "summary.json"
@@ -136,6 +139,20 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
                     t.goal_prior = float(goal_prior)
                 rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
                                      episodes, seed, False, suffix=f"{suffix}/prior{goal_prior:g}"))
+        if goal_search is not None and maps and not any(type(m).__name__ == "GoalSearch"
+                                                        for m in policy):
+            # the same policy (guard and flank margin, if asked; no prior), a GoalSearch last
+            from tensordict.nn import TensorDictSequential
+
+            from torchrl_causal.modules import GoalSearch
+
+            for t in maps:
+                t.goal_prior = None
+            mask = "action_mask" if "action_mask" in env.observation_spec.keys() else None
+            searching = TensorDictSequential(*policy, GoalSearch(
+                goal_search, resolution=maps[0].resolution, action_mask_key=mask))
+            rows.append(_run_row(name, folder, cfg, summary, prov, searching, env, setting,
+                                 episodes, seed, False, suffix=f"{suffix}/search{goal_search:g}"))
         env.close()
     return rows
 
@@ -272,6 +289,10 @@ def main(argv=None) -> list[dict]:
                    help="also evaluate each run that builds an EgoMap with its goal_prior set to "
                         "D metres (a goal the start does not see is guessed D m ahead; variant "
                         "'<v>[/loop_guard][/flankM]/priorD', after --flank-margin)")
+    p.add_argument("--goal-search", type=float, default=None, metavar="D",
+                   help="also evaluate each run that builds an EgoMap with a GoalSearch appended "
+                        "(until the goal is seen, fly round the map's obstacles towards a point "
+                        "D m ahead of the start; variant '<v>[/loop_guard][/flankM]/searchD')")
     p.add_argument("--control", default=None,
                    help="a variant (e.g. dqn_features): paired differences of every other "
                         "variant against it, seed by seed")
@@ -282,6 +303,8 @@ def main(argv=None) -> list[dict]:
         p.error(f"--flank-margin must be a finite number >= 0, got {a.flank_margin}")
     if a.goal_prior is not None and not (math.isfinite(a.goal_prior) and 0 < a.goal_prior < 9):
         p.error(f"--goal-prior must be a distance in (0, 9) m, got {a.goal_prior}")
+    if a.goal_search is not None and not (math.isfinite(a.goal_search) and 0 < a.goal_search < 9):
+        p.error(f"--goal-search must be a distance in (0, 9) m, got {a.goal_search}")
     folders = [Path(f) for pat in a.runs for f in sorted(glob.glob(pat))]
     missing = [str(f) for f in folders if not (f / "model.pt").is_file()]
     if missing:
@@ -311,7 +334,7 @@ def main(argv=None) -> list[dict]:
     for name, folder in named:
         emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off,
                       loop_guard=a.loop_guard, flank_margin=a.flank_margin,
-                      goal_prior=a.goal_prior))
+                      goal_prior=a.goal_prior, goal_search=a.goal_search))
     emit(variant_rows(rows, a.target))
     if a.control:
         emit(paired_rows(rows, a.control))

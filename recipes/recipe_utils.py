@@ -21,6 +21,7 @@ The training loop itself (Alg. 1, checkpoints, exact resume) is
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from dataclasses import dataclass
@@ -379,6 +380,13 @@ def _check_teacher(cfg: Mapping) -> None:
     loop_guard = _get(cfg, "features.loop_guard", False)
     _require(not loop_guard or history >= 4, "features.loop_guard", loop_guard,
              "false unless features.history >= 4 (LoopGuard reads the last four actions)")
+    goal_search = _get(cfg, "features.goal_search", 0.0)
+    _require(isinstance(goal_search, (int, float)) and not isinstance(goal_search, bool)
+             and math.isfinite(goal_search) and goal_search >= 0
+             and (goal_search == 0 or bool({"goal_memory", "map_clearance", "ego_map"}
+                                           & set(inputs))),
+             "features.goal_search", goal_search,
+             "0 (off) or a distance > 0 (m) with an EgoMap input in features.inputs")
     _require(not ("ego_map" in inputs and _get(cfg, "features.image", True)), "features.image",
              _get(cfg, "features.image", True), "false when ego_map is an input (MapQNet)")
     _require(("action_history" in inputs) == (history > 0), "features.inputs", inputs,

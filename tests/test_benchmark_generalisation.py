@@ -96,3 +96,15 @@ def test_goal_prior_rows_fly_the_same_episodes_with_a_guessed_hidden_goal():
     for bad in ("0", "-1", "nan", "12"):
         with pytest.raises(SystemExit):
             gb.main(["--pretrained", "generalist", "--goal-prior", bad])
+
+
+def test_goal_search_rows_fly_the_same_episodes_with_a_search_for_a_hidden_goal():
+    rows = gb.main(["--pretrained", "generalist", "--episodes", "3", "--settings", "heldout",
+                    "--goal-search", "4", "--no-oracle"])
+    runs = [r for r in rows if r["figure"] == "run"]
+    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/search4"]
+    assert runs[0]["goal_hidden_at_start"] == runs[1]["goal_hidden_at_start"]
+    assert runs[0]["episodes"] == runs[1]["episodes"] == 3
+    for bad in ("0", "-1", "nan", "12"):
+        with pytest.raises(SystemExit):
+            gb.main(["--pretrained", "generalist", "--goal-search", bad])

@@ -63,6 +63,23 @@ def test_loop_guard_needs_four_actions_of_history(tmp_path):
         PolicySpec(inputs=["causal_features", "action_history"], history=2, loop_guard=True)
 
 
+@pytest.mark.parametrize("value", ["-1.0", "true", "nan"])
+def test_goal_search_is_a_distance_and_needs_an_ego_map_input(tmp_path, value):
+    cfg = _cfg([f"output_dir={tmp_path}", f"features.goal_search={value}"])
+    with pytest.raises(ValueError, match="features.goal_search"):
+        ru.validate_config(cfg, tmp_path)
+
+
+def test_goal_search_in_the_config_builds_a_searching_policy(tmp_path):
+    cfg = _cfg([f"output_dir={tmp_path}", "features.goal_search=4.0"])
+    ru.validate_config(cfg, tmp_path)  # the generalist's inputs include goal_memory
+    spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant])
+    assert spec.goal_search == 4.0
+    from torchrl_causal.pretrained.policy import policy_guards
+
+    assert [type(m).__name__ for m in policy_guards(spec)] == ["GoalSearch"]
+
+
 def test_ego_map_input_needs_the_image_off(tmp_path):
     cfg = _cfg([f"output_dir={tmp_path}", "features.inputs=[ego_map,causal_features,action_history]",
                 "features.image=true"])
