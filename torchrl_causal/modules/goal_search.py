@@ -98,9 +98,10 @@ class GoalSearch(TensorDictModuleBase):
         >>> from torchrl.envs import TransformedEnv
         >>> from torchrl_causal.envs import DroneNavEnv
         >>> from torchrl_causal.transforms import EgoMap
-        >>> env = TransformedEnv(DroneNavEnv(layout="train", seed=3, image_size=32), EgoMap())
+        >>> env = TransformedEnv(DroneNavEnv("random", seed=3, image_size=32),
+        ...                      EgoMap())
         >>> td = env.reset()
-        >>> td.set("action", torch.tensor(4))  # the policy's choice: ascend
+        >>> _ = td.set("action", torch.tensor(4))  # the policy's choice: ascend
         >>> out = GoalSearch()(td)
         >>> out["goal_search_fired"].item() == (not td["goal_seen"].item())
         True
