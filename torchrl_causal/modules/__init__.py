@@ -8,14 +8,16 @@
   :class:`torchrl.modules.QValueActor`.
 * :class:`LoopGuard` -- placed last: a deterministic policy never repeats a
   two-move loop (``A, inv(A), A, inv(A)``).
+* :class:`RevisitGuard` -- placed after it: never repeats an action from a pose
+  it was already taken from while another way out is untried (any cycle).
 * :class:`GoalSearch` -- placed last: until the goal has been seen, fly round
   the obstacles of the drone's own map towards a point ahead of the start.
 """
 
 from torchrl_causal.modules.gate import GATE_VARIANTS, CBNGate
 from torchrl_causal.modules.goal_search import GoalSearch
-from torchrl_causal.modules.loop_guard import INVERSE_ACTIONS, LoopGuard
+from torchrl_causal.modules.loop_guard import INVERSE_ACTIONS, LoopGuard, RevisitGuard
 from torchrl_causal.modules.qnet import FeatureQNet, MapQNet, ThesisQNet
 
 __all__ = ["CBNGate", "FeatureQNet", "GATE_VARIANTS", "GoalSearch", "INVERSE_ACTIONS",
-           "LoopGuard", "MapQNet", "ThesisQNet"]
+           "LoopGuard", "MapQNet", "RevisitGuard", "ThesisQNet"]

@@ -14,6 +14,10 @@ deterministic world then loops until the step limit.
 chosen action would repeat such a loop, it takes the best *other* allowed
 action by the Q-values; otherwise it passes the action through. It needs no
 pose, only the action history, so it works on a real drone too.
+
+:class:`RevisitGuard` breaks cycles of any length: it reads, from
+:class:`~torchrl_causal.transforms.VisitMemory`, which actions were already
+taken from the dead-reckoned pose the drone is at, and prefers an untried one.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from ..schema import ACTION_NAMES
 
-__all__ = ["LoopGuard", "INVERSE_ACTIONS"]
+__all__ = ["LoopGuard", "RevisitGuard", "INVERSE_ACTIONS"]
 
 #: The move that undoes each action, in :data:`~torchrl_causal.schema.ACTION_NAMES` order.
 INVERSE_ACTIONS: tuple[int, ...] = tuple(
@@ -115,4 +119,73 @@ class LoopGuard(TensorDictModuleBase):
         other = q.masked_fill(~allowed, low).argmax(-1)
         tensordict.set(self.action_key, torch.where(fire, other.to(action.dtype), action))
         tensordict.set("loop_guard_fired", fire)
+        return tensordict
+
+
+class RevisitGuard(TensorDictModuleBase):
+    """Never repeats an action from a pose it was already taken from, while another is untried.
+
+    :class:`LoopGuard` breaks two-move loops from the action history. A cycle
+    of any length brings the drone back to a pose it has flown from before;
+    :class:`~torchrl_causal.transforms.VisitMemory` counts the actions already
+    taken from the pose the drone is at (``visit_counts``). Where the chosen
+    action has been taken from here ``repeats`` times or more and an allowed
+    action has been taken fewer times than it, :class:`RevisitGuard` takes the
+    least-tried allowed action, the best of them by Q-value -- a depth-first
+    search's rule (Tremaux's): every way out of a pose is tried before one is
+    taken again. Otherwise the action is unchanged. ``revisit_guard_fired``
+    (bool) records where it intervened.
+
+    Args:
+        n_actions: size of the action space.
+        repeats: how many times an action may be taken from one pose before the
+            guard prefers a less-tried one (1: never twice while another way is
+            untried).
+        counts_key, action_key, action_value_key: the keys read.
+        action_mask_key: the allowed actions (bool ``[..., n_actions]``), or None.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> guard = RevisitGuard()
+        >>> td = TensorDict({"visit_counts": torch.tensor([1., 0, 0, 0, 0, 0, 1, 0]),
+        ...                  "action": torch.tensor(0),
+        ...                  "action_value": torch.tensor([5., 4., 1., 3., 0., 0., 2., 0.])}, [])
+        >>> guard(td)["action"].item(), td["revisit_guard_fired"].item()  # backward: untried
+        (1, True)
+    """
+
+    def __init__(self, n_actions: int = 8, repeats: int = 1, *, counts_key="visit_counts",
+                 action_key="action", action_value_key="action_value", action_mask_key=None):
+        super().__init__()
+        if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 2:
+            raise ValueError(f"n_actions must be an int >= 2, got {n_actions!r}")
+        if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+            raise ValueError(f"RevisitGuard repeats must be an int >= 1, got {repeats!r}")
+        self.n_actions, self.repeats = n_actions, repeats
+        self.counts_key, self.action_key = counts_key, action_key
+        self.action_value_key, self.action_mask_key = action_value_key, action_mask_key
+        self.in_keys = [counts_key, action_key, action_value_key] + (
+            [action_mask_key] if action_mask_key is not None else [])
+        self.out_keys = [action_key, "revisit_guard_fired"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(self.action_key)
+        if action.is_floating_point() or action.shape[-1:] == (self.n_actions,) and \
+                action.dtype == torch.bool:
+            raise ValueError(f"RevisitGuard needs an action index, got {action.dtype} "
+                             f"{tuple(action.shape)}")
+        q = tensordict.get(self.action_value_key).float()
+        counts = tensordict.get(self.counts_key).float().expand_as(q)
+        allowed = torch.ones_like(q, dtype=torch.bool)
+        if self.action_mask_key is not None:
+            allowed = tensordict.get(self.action_mask_key).bool().expand_as(q)
+        inf = torch.tensor(math.inf, device=q.device)
+        chosen = counts.gather(-1, action.unsqueeze(-1).long()).squeeze(-1)
+        least = torch.where(allowed, counts, inf).amin(-1)
+        fire = (chosen >= self.repeats) & (least < chosen)
+        candidates = allowed & (counts == least.unsqueeze(-1))
+        other = q.masked_fill(~candidates, -math.inf).argmax(-1)
+        tensordict.set(self.action_key, torch.where(fire, other.to(action.dtype), action))
+        tensordict.set("revisit_guard_fired", fire)
         return tensordict

@@ -83,6 +83,11 @@ class PolicySpec:
         loop_guard: append :class:`~torchrl_causal.modules.LoopGuard` after the
             explorer: the policy never repeats a two-move loop
             (``A, inv(A), A, inv(A)``); needs ``history >= 4``.
+        revisit_guard: append :class:`~torchrl_causal.transforms.VisitMemory` to
+            the transforms and :class:`~torchrl_causal.modules.RevisitGuard`
+            after the loop guard: the policy never takes an action again from
+            a dead-reckoned pose it was taken from while another allowed one is
+            untried there (cycles of any length); needs an EgoMap input.
         goal_search: 0 (off), or a distance (m): append
             :class:`~torchrl_causal.modules.GoalSearch` last -- until the goal
             has been in view, the drone flies round its map's obstacles towards
@@ -112,6 +117,7 @@ class PolicySpec:
     ego_map: dict = field(default_factory=dict)
     shield: bool = False
     loop_guard: bool = False
+    revisit_guard: bool = False
     goal_search: float = 0.0
     provenance: dict = field(default_factory=dict)
 
@@ -135,6 +141,12 @@ class PolicySpec:
         if self.loop_guard and not (isinstance(self.history, int) and self.history >= 4):
             raise ValueError(f"PolicySpec.loop_guard=True reads the last four actions: it needs "
                              f"history >= 4, got {self.history!r}")
+        if not isinstance(self.revisit_guard, bool):
+            raise ValueError(f"PolicySpec.revisit_guard must be a bool, got "
+                             f"{self.revisit_guard!r}")
+        if self.revisit_guard and not self.uses_ego_map:
+            raise ValueError("PolicySpec.revisit_guard needs EgoMap's dead-reckoned pose: give "
+                             "an input among 'ego_map', 'goal_memory', 'map_clearance'")
         gs = self.goal_search
         if isinstance(gs, bool) or not isinstance(gs, (int, float)) or not math.isfinite(gs) \
                 or gs < 0:
@@ -258,6 +270,10 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
         from ..transforms.egomap import EgoMap
 
         out.append(EgoMap(**spec.ego_map))
+        if spec.revisit_guard:
+            from ..transforms.visits import VisitMemory
+
+            out.append(VisitMemory(spec.n_actions))
     if len(spec.vector_inputs) > 1:
         out.append(CatTensors(list(spec.vector_inputs), "policy_features", del_keys=False))
     return out
@@ -376,7 +392,8 @@ def load_policy_dir(folder, *, env=None, device="cpu"):
 
 def policy_guards(spec: PolicySpec) -> list:
     """The modules placed after the explorer (a :class:`~torchrl_causal.modules.LoopGuard`
-    when ``spec.loop_guard``, then a :class:`~torchrl_causal.modules.GoalSearch` when
+    when ``spec.loop_guard``, a :class:`~torchrl_causal.modules.RevisitGuard` when
+    ``spec.revisit_guard``, then a :class:`~torchrl_causal.modules.GoalSearch` when
     ``spec.goal_search``), at acting time, in training and evaluation alike.
 
     Example:
@@ -385,10 +402,12 @@ def policy_guards(spec: PolicySpec) -> list:
         >>> [type(m).__name__ for m in policy_guards(spec)]
         ['LoopGuard']
     """
-    from ..modules import GoalSearch, LoopGuard
+    from ..modules import GoalSearch, LoopGuard, RevisitGuard
 
     mask_key = "action_mask" if spec.shield else None
     out = [LoopGuard(spec.n_actions, action_mask_key=mask_key)] if spec.loop_guard else []
+    if spec.revisit_guard:
+        out.append(RevisitGuard(spec.n_actions, action_mask_key=mask_key))
     if spec.goal_search:
         out.append(GoalSearch(spec.goal_search,
                               resolution=float(spec.ego_map.get("resolution", 0.15)),

@@ -14,6 +14,8 @@
   short-term memory; not one of the nine variables).
 * :class:`EgoMap` -- an egocentric occupancy map and the goal's remembered place,
   from depth, the goal measurement and dead reckoning (the generalist's memory).
+* :class:`VisitMemory` -- the actions already taken from the dead-reckoned pose
+  the drone is at (read by :class:`~torchrl_causal.modules.RevisitGuard`).
 
 The altitude needs no transform: ``Discretize`` reads the env's ``altitude``
 key directly (rename another env's key with TorchRL's ``RenameTransform`` or
@@ -27,6 +29,7 @@ from torchrl_causal.transforms.goal import GoalFeatures
 from torchrl_causal.transforms.egomap import CLEARANCE_FIELDS, GOAL_MEMORY_FIELDS, EgoMap
 from torchrl_causal.transforms.history import ActionHistory
 from torchrl_causal.transforms.stack import make_causal_transforms
+from torchrl_causal.transforms.visits import VisitMemory
 
 __all__ = [
     "ActionHistory",
@@ -39,6 +42,7 @@ __all__ = [
     "GoalFeatures",
     "SECTION_NAMES",
     "Thresholds",
+    "VisitMemory",
     "make_causal_transforms",
     "section_masks",
 ]
