@@ -310,3 +310,26 @@ def test_goal_prior_guesses_a_hidden_goal_ahead_until_the_goal_is_seen():
         EgoMap(goal_prior=-1.0)
     with pytest.raises(ValueError, match="goal_prior must lie inside the map"):
         EgoMap(goal_prior=12.0)
+
+
+def test_env_geofence_reads_a_tello_envs_own_fence():
+    """geofence='env' over a TelloEnv (dry run: no drone, no socket) masks the moves its own
+    geofence would refuse, in the same take-off frame."""
+    import torch
+
+    from torchrl_causal.envs import TelloEnv
+    from torchrl_causal.perception.goal import SimGoalDetector
+
+    class NoGoal(SimGoalDetector):
+        def detect(self, pixels, depth=None, **_):
+            return torch.zeros(len(pixels), 0, 4), torch.zeros(len(pixels), 0)
+
+    tello = TelloEnv(dry_run=True, verbose=False, detector=NoGoal(),
+                     depth_estimator=lambda p: torch.full(p.shape[:3], 5.0),
+                     geofence=(-2.0, -0.3, 0.55, 3.0))
+    env = TransformedEnv(tello, EgoMap(geofence="env"))
+    td = env.reset()
+    assert td["action_mask"][:4].tolist() == [True, True, True, False]  # right: y = -0.25 < -0.3 + 0.1
+    td = env.step(td.set("action", torch.tensor(0)))["next"]  # forward to x = 0.25
+    assert td["action_mask"][:4].tolist() == [False, True, True, False]  # 0.5 > 0.55 - 0.1
+    env.close()

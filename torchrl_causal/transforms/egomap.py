@@ -49,8 +49,10 @@ with ``PolicySpec(shield=True)`` never picks a masked move (a safety shield:
 the map says the hull would not fit). With a ``geofence`` the mask also
 forbids a horizontal move whose dead-reckoned end lies outside the flight
 area, and an ascent above its ceiling (``"env"``: the ``DroneNavEnv``
-layout's arena and height, read at every reset; a tuple: the area in the
-start frame, as :class:`~torchrl_causal.envs.TelloEnv`'s ``geofence``).
+layout's arena and height, read at every reset, or a
+:class:`~torchrl_causal.envs.TelloEnv`'s own ``geofence`` and ``max_height``;
+a tuple: the area in the start frame, as :class:`~torchrl_causal.envs.TelloEnv`'s
+``geofence``).
 
 The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
 image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
@@ -113,7 +115,8 @@ class EgoMap(Transform):
         action_key: the action's key (index or one-hot).
         geofence: None (default: no fence in the mask); ``"env"``: the base
             :class:`~torchrl_causal.envs.DroneNavEnv`'s arena and ceiling,
-            read at every reset; or ``(x_min, y_min, x_max, y_max)`` (m) in the
+            read at every reset (or a :class:`~torchrl_causal.envs.TelloEnv`'s
+            own ``geofence`` and ``max_height``); or ``(x_min, y_min, x_max, y_max)`` (m) in the
             start frame (x forward, y left at reset). ``action_mask`` then
             forbids a horizontal move that would end outside it (less
             ``geofence_margin``) and, with ``"env"``, an ascent above the
@@ -253,9 +256,16 @@ class EgoMap(Transform):
         parent = self.parent
         base = getattr(parent, "base_env", None) if parent is not None else None
         layout = getattr(base, "layout", None)
+        fence = getattr(base, "geofence", None)
+        if layout is None and isinstance(fence, tuple) and len(fence) == 4:
+            # a TelloEnv: its own geofence, in the take-off frame, and its height limit
+            out[:, 3:7] = torch.tensor(fence, device=device)
+            out[:, 7] = float(getattr(base, "max_height", inf))
+            return out
         if layout is None or n != 1:
-            raise ValueError("EgoMap geofence='env' reads the arena of one DroneNavEnv under "
-                             "it (not a batched env); give (x_min, y_min, x_max, y_max) instead")
+            raise ValueError("EgoMap geofence='env' reads the arena of one DroneNavEnv (or the "
+                             "geofence of a TelloEnv) under it, not a batched env; give "
+                             "(x_min, y_min, x_max, y_max) instead")
         x0, y0, _ = (float(v) for v in layout.start_pos)
         out[0] = torch.tensor([x0, y0, math.radians(float(layout.start_yaw_deg)),
                                *(float(v) for v in layout.arena), float(layout.height)],
