@@ -25,6 +25,10 @@ Prints one JSON object per line:
   :class:`~torchrl_causal.transforms.EgoMap`'s ``flank_margin`` set to ``M``; with
   ``--goal-prior D`` also ``<variant>[/loop_guard][/flankM]/priorD``, with the map's
   ``goal_prior`` (a hidden goal guessed ``D`` m ahead of the start) set to ``D`` as well;
+  with ``--geofence`` also ``<variant>[/loop_guard][/flankM]/fence``, the same
+  policy with its EgoMap's ``geofence`` set to ``"env"``; with ``--revisit-guard`` also
+  ``<variant>[...]/revisit``, with a :class:`~torchrl_causal.transforms.VisitMemory` and a
+  :class:`~torchrl_causal.modules.RevisitGuard` appended;
   with ``--goal-search D`` also ``<variant>[/loop_guard][/flankM]/searchD``, the same policy
   with a :class:`~torchrl_causal.modules.GoalSearch` appended (no prior);
 * ``figure="paired"`` (``--control dqn_features``): per variant and setting, the mean
@@ -90,7 +94,8 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
              gate_off: bool = False, loop_guard: bool = False,
              flank_margin: float | None = None,
              goal_prior: float | None = None,
-             goal_search: float | None = None) -> list[dict]:
+             goal_search: float | None = None, geofence: bool = False,
+             revisit_guard: bool = False) -> list[dict]:
     import train
 
     summary_path = folder / "summary.json"
@@ -133,6 +138,26 @@ def run_rows(name: str, folder: Path, settings, episodes: int, seed: int,
                 suffix = f"{suffix}/flank{flank_margin:g}"
                 rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
                                      episodes, seed, False, suffix=suffix))
+        if geofence and maps:  # the same policy, the env's flight area in the map's mask
+            for t in maps:
+                t.geofence = "env"
+            suffix = f"{suffix}/fence"
+            rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                 episodes, seed, False, suffix=suffix))
+        if revisit_guard and maps and not any(type(m).__name__ == "RevisitGuard"
+                                              for m in policy):
+            # the same policy (and the options above), a VisitMemory + RevisitGuard appended
+            from tensordict.nn import TensorDictSequential
+
+            from torchrl_causal.modules import RevisitGuard
+            from torchrl_causal.transforms import VisitMemory
+
+            env.append_transform(VisitMemory())
+            mask = "action_mask" if "action_mask" in env.observation_spec.keys() else None
+            policy = TensorDictSequential(*policy, RevisitGuard(action_mask_key=mask))
+            suffix = f"{suffix}/revisit"
+            rows.append(_run_row(name, folder, cfg, summary, prov, policy, env, setting,
+                                 episodes, seed, False, suffix=suffix))
         if goal_prior is not None:
             if maps:  # the same policy (and flank margin, if asked), a hidden goal guessed ahead
                 for t in maps:
@@ -285,6 +310,13 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--flank-margin", type=float, default=None, metavar="M",
                    help="also evaluate each run that builds an EgoMap with its flank_margin set "
                         "to M metres (variant '<v>[/loop_guard]/flankM', after --loop-guard)")
+    p.add_argument("--geofence", action="store_true",
+                   help="also fly each policy with its EgoMap's geofence set to 'env' (the "
+                        "layout's arena in the action mask; variant '<v>[/loop_guard][/flankM]"
+                        "/fence')")
+    p.add_argument("--revisit-guard", action="store_true",
+                   help="also fly each policy with a VisitMemory + RevisitGuard appended "
+                        "(variant '<v>[/loop_guard][/flankM][/fence]/revisit')")
     p.add_argument("--goal-prior", type=float, default=None, metavar="D",
                    help="also evaluate each run that builds an EgoMap with its goal_prior set to "
                         "D metres (a goal the start does not see is guessed D m ahead; variant "
@@ -334,7 +366,8 @@ def main(argv=None) -> list[dict]:
     for name, folder in named:
         emit(run_rows(name, folder, a.settings, a.episodes, a.seed, gate_off=a.gate_off,
                       loop_guard=a.loop_guard, flank_margin=a.flank_margin,
-                      goal_prior=a.goal_prior, goal_search=a.goal_search))
+                      goal_prior=a.goal_prior, goal_search=a.goal_search,
+                      geofence=a.geofence, revisit_guard=a.revisit_guard))
     emit(variant_rows(rows, a.target))
     if a.control:
         emit(paired_rows(rows, a.control))

@@ -380,6 +380,11 @@ def _check_teacher(cfg: Mapping) -> None:
     loop_guard = _get(cfg, "features.loop_guard", False)
     _require(not loop_guard or history >= 4, "features.loop_guard", loop_guard,
              "false unless features.history >= 4 (LoopGuard reads the last four actions)")
+    revisit_guard = _get(cfg, "features.revisit_guard", False)
+    _require(isinstance(revisit_guard, bool) and (not revisit_guard or bool(
+        {"goal_memory", "map_clearance", "ego_map"} & set(inputs))), "features.revisit_guard",
+        revisit_guard, "false unless features.inputs has an EgoMap input (the guard reads its "
+        "dead-reckoned pose)")
     goal_search = _get(cfg, "features.goal_search", 0.0)
     _require(isinstance(goal_search, (int, float)) and not isinstance(goal_search, bool)
              and math.isfinite(goal_search) and goal_search >= 0

@@ -34,7 +34,8 @@ def _commit() -> str:
 
 def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
          dest: Path = DEST, loop_guard: bool = False,
-         flank_margin: float | None = None) -> Path:
+         flank_margin: float | None = None, revisit_guard: bool = False,
+         geofence: str | None = None) -> Path:
     """Copies the policy of ``run_dir`` to ``dest/name``; returns that folder.
 
     ``loop_guard=True`` ships the policy with a
@@ -44,12 +45,17 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
     did not act with one. ``flank_margin`` sets the run's
     :class:`~torchrl_causal.transforms.EgoMap` ``flank_margin`` (m) in the
     shipped config (``features.ego_map.flank_margin``), recorded the same way.
+    ``revisit_guard=True`` ships it with :class:`~torchrl_causal.transforms.VisitMemory`
+    and :class:`~torchrl_causal.modules.RevisitGuard` (``features.revisit_guard``);
+    ``geofence="env"`` sets the EgoMap's ``geofence`` (``features.ego_map.geofence``:
+    the mask forbids moves that leave the env's flight area), both recorded the same way.
 
     Raises:
         FileNotFoundError: the run folder lacks ``config.yaml``, ``model.pt`` or
             ``explorer.pt`` (named).
         ValueError: ``name`` is not a plain folder name; ``flank_margin`` is
-            negative or the run builds no EgoMap.
+            negative, ``geofence`` is not ``"env"``, or the run builds no EgoMap
+            for an option that needs one.
     """
     from omegaconf import OmegaConf
 
@@ -71,16 +77,33 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         OmegaConf.set_struct(cfg, False)
         cfg.features.loop_guard = True
     trained_flank = OmegaConf.select(cfg, "features.ego_map.flank_margin", default=None)
+    trained_fence = OmegaConf.select(cfg, "features.ego_map.geofence", default=None)
+    trained_revisit = bool(OmegaConf.select(cfg, "features.revisit_guard", default=False))
+    inputs = set(OmegaConf.select(cfg, "features.inputs", default=[]) or [])
+    has_map = bool({"goal_memory", "map_clearance", "ego_map"} & inputs)
+    ego_map: dict = {}
     if flank_margin is not None:
         ru._require(isinstance(flank_margin, (int, float)) and flank_margin >= 0,
                     "--flank-margin", flank_margin, "a number of metres >= 0")
-        inputs = set(OmegaConf.select(cfg, "features.inputs", default=[]) or [])
-        ru._require(bool({"goal_memory", "map_clearance", "ego_map"} & inputs), "--flank-margin",
-                    flank_margin, f"a run whose features build an EgoMap ({run_dir})")
+        ru._require(has_map, "--flank-margin", flank_margin,
+                    f"a run whose features build an EgoMap ({run_dir})")
+        ego_map["flank_margin"] = float(flank_margin)
+    if geofence is not None:
+        ru._require(geofence == "env", "--geofence", geofence,
+                    "'env' (the env's own flight area)")
+        ru._require(has_map, "--geofence", geofence,
+                    f"a run whose features build an EgoMap ({run_dir})")
+        ego_map["geofence"] = geofence
+    if revisit_guard:
+        ru._require(has_map, "--revisit-guard", True,
+                    f"a run whose features build an EgoMap ({run_dir})")
+        OmegaConf.set_struct(cfg, False)
+        cfg.features.revisit_guard = True
+    if ego_map:
         OmegaConf.set_struct(cfg, False)
         kwargs = OmegaConf.select(cfg, "features.ego_map", default=None)
         kwargs = OmegaConf.to_container(kwargs) if kwargs is not None else {}
-        cfg.features.ego_map = {**kwargs, "flank_margin": float(flank_margin)}
+        cfg.features.ego_map = {**kwargs, **ego_map}
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     provenance = {
@@ -103,6 +126,13 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         provenance["flank_margin"] = (f"EgoMap flank_margin {flank_margin:g} m set when shipped "
                                       f"(ship_policy.py --flank-margin); the run trained and made "
                                       f"final_eval with {trained_flank or 0:g} m")
+    if revisit_guard and not trained_revisit:
+        provenance["revisit_guard"] = ("added when shipped (ship_policy.py --revisit-guard): the "
+                                       "run trained and made final_eval without it")
+    if geofence is not None and trained_fence != geofence:
+        provenance["geofence"] = (f"EgoMap geofence {geofence!r} set when shipped "
+                                  f"(ship_policy.py --geofence); the run trained and made "
+                                  f"final_eval with {trained_fence!r}")
     spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant], provenance=provenance)
     out = dest / name
     out.mkdir(parents=True, exist_ok=True)
@@ -126,10 +156,16 @@ def main(argv=None):
     p.add_argument("--flank-margin", type=float, default=None, metavar="M",
                    help="ship with EgoMap's flank_margin set to M metres "
                         "(features.ego_map.flank_margin)")
+    p.add_argument("--revisit-guard", action="store_true",
+                   help="ship with VisitMemory + RevisitGuard (features.revisit_guard=true)")
+    p.add_argument("--geofence", default=None, choices=("env",),
+                   help="ship with EgoMap's geofence in the action mask "
+                        "(features.ego_map.geofence=env: the env's own flight area)")
     a = p.parse_args(argv)
     try:
         out = ship(a.run_dir, a.name, command=a.command, notes=a.notes, loop_guard=a.loop_guard,
-                   flank_margin=a.flank_margin)
+                   flank_margin=a.flank_margin, revisit_guard=a.revisit_guard,
+                   geofence=a.geofence)
     except ValueError as e:
         p.error(str(e))
     print(f"Shipped {a.run_dir} as pretrained policy {a.name!r}: {out}")

@@ -103,6 +103,7 @@ def policy_spec(cfg: DictConfig, variant: ru.Variant, provenance: dict | None = 
         ego_map=_plain(features.get("ego_map", {})) if variant.features else {},
         shield=bool(features.get("shield", False)) if variant.features else False,
         loop_guard=bool(features.get("loop_guard", False)) if variant.features else False,
+        revisit_guard=bool(features.get("revisit_guard", False)) if variant.features else False,
         goal_search=float(features.get("goal_search", 0.0) or 0.0) if variant.features else 0.0,
     )
 

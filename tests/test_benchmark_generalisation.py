@@ -108,3 +108,14 @@ def test_goal_search_rows_fly_the_same_episodes_with_a_search_for_a_hidden_goal(
     for bad in ("0", "-1", "nan", "12"):
         with pytest.raises(SystemExit):
             gb.main(["--pretrained", "generalist", "--goal-search", bad])
+
+
+def test_fence_and_revisit_rows_fly_the_same_episodes_with_the_options_added():
+    rows = gb.main(["--pretrained", "generalist", "--episodes", "2", "--settings", "heldout",
+                    "--geofence", "--revisit-guard", "--no-oracle"])
+    runs = [r for r in rows if r["figure"] == "run"]
+    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/fence", "cbn_v2/fence/revisit"]
+    assert len({r["goal_hidden_at_start"] for r in runs}) == 1
+    assert all(r["episodes"] == 2 and r["out_of_bounds"] in (0, 1, 2) for r in runs)
+    # the fence keeps every flight inside the arena
+    assert runs[1]["out_of_bounds"] == runs[2]["out_of_bounds"] == 0

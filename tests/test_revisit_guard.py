@@ -156,3 +156,30 @@ def test_without_a_pose_it_says_what_to_do():
     env = TransformedEnv(DroneNavEnv(seed=0, image_size=32), VisitMemory())
     with pytest.raises(KeyError, match="after EgoMap"):
         env.reset()
+
+
+def test_a_shipped_copy_with_the_options_loads_them(tmp_path):
+    """ship_policy --revisit-guard --geofence env: the shipped folder rebuilds a policy with a
+    RevisitGuard after the LoopGuard and an EgoMap fenced by the env, and says so."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    import ship_policy
+
+    from torchrl_causal.pretrained import policy_dir
+    from torchrl_causal.pretrained.policy import load_policy_dir
+
+    out = ship_policy.ship(policy_dir("generalist"), "gen_copy", dest=tmp_path,
+                           revisit_guard=True, geofence="env")
+    prov = json.loads((out / "provenance.json").read_text())
+    assert "revisit_guard" in prov and "geofence" in prov
+    policy, env, spec = load_policy_dir(out, env=DroneNavEnv("random", split="heldout", seed=0))
+    assert spec.revisit_guard and spec.ego_map["geofence"] == "env"
+    assert [type(m).__name__ for m in policy][-2:] == ["LoopGuard", "RevisitGuard"]
+    assert "visit_counts" in env.reset().keys()
+    for bad, match in ((dict(geofence="room"), "--geofence"),):
+        with pytest.raises(ValueError, match=match):
+            ship_policy.ship(policy_dir("generalist"), "gen_bad", dest=tmp_path, **bad)
+    env.close()
