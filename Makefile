@@ -34,13 +34,14 @@ train: venv
 # oracle teacher phase + DQN phase across random training-split layouts, selected on a validation
 # set of training-split layouts), then shipped as torchrl_causal.pretrained "generalist".
 # the shipped generalist is seed 1 of 5 (chosen on its validation success, docs/results.rst),
-# shipped with a LoopGuard and EgoMap flank_margin 0.3 m (each measured on validation, then
-# held-out layouts, docs/results.rst)
+# shipped with a LoopGuard, EgoMap flank_margin 0.3 m, the layout's geofence in the mask and a
+# RevisitGuard (each measured on validation, then held-out layouts, docs/results.rst)
 GENERALIST_ARGS ?= seed=1
 generalist: venv
 	$(PY) recipes/train.py --config-name generalist output_dir=outputs/generalist threads=1 \
 	    progress=false $(GENERALIST_ARGS)
 	$(PY) recipes/ship_policy.py outputs/generalist generalist --loop-guard --flank-margin 0.3 \
+	    --geofence env --revisit-guard \
 	    --command "make generalist GENERALIST_ARGS='$(GENERALIST_ARGS)'"
 
 # make ship-thesis THESIS_RUN=<run folder of make train>: ship it as pretrained "thesis"

@@ -106,6 +106,12 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         cfg.features.ego_map = {**kwargs, **ego_map}
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    # a shipped folder shipped again (e.g. with another guard): its record carries over
+    prior_path = run_dir / "provenance.json"
+    prior = json.loads(prior_path.read_text()) if prior_path.is_file() and not summary else {}
+    if prior:
+        summary = {k: prior.get(k) for k in ("frames", "teacher", "loop_seconds",
+                                             "selected_frames", "final_eval")}
     provenance = {
         "name": name,
         "command": command or f"python recipes/train.py output_dir={run_dir}",
@@ -119,6 +125,12 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         "commit": _commit(),
         "notes": notes,
     }
+    for key in ("loop_guard", "flank_margin", "revisit_guard", "geofence"):
+        if key in prior:
+            provenance[key] = prior[key]
+    if prior:
+        provenance["shipped_from"] = {"name": prior.get("name"), "commit": prior.get("commit"),
+                                      "command": prior.get("command")}
     if loop_guard and not trained_with_guard:
         provenance["loop_guard"] = ("added when shipped (ship_policy.py --loop-guard): the run "
                                     "trained and made final_eval without it")

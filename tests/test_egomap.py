@@ -333,3 +333,12 @@ def test_env_geofence_reads_a_tello_envs_own_fence():
     td = env.step(td.set("action", torch.tensor(0)))["next"]  # forward to x = 0.25
     assert td["action_mask"][:4].tolist() == [False, True, True, False]  # 0.5 > 0.55 - 0.1
     env.close()
+    # a TelloEnv without a geofence: nothing horizontal is fenced; its ceiling still is
+    tello = TelloEnv(dry_run=True, verbose=False, detector=NoGoal(),
+                     depth_estimator=lambda p: torch.full(p.shape[:3], 5.0), geofence=None,
+                     max_height=1.0)
+    env = TransformedEnv(tello, EgoMap(geofence="env"))
+    td = env.reset()
+    assert td["action_mask"][:4].all()
+    assert td["action_mask"][4].item() == bool(td["altitude"].item() + 0.25 <= 1.0 - 0.1)
+    env.close()

@@ -175,6 +175,10 @@ def test_a_shipped_copy_with_the_options_loads_them(tmp_path):
                            revisit_guard=True, geofence="env")
     prov = json.loads((out / "provenance.json").read_text())
     assert "revisit_guard" in prov and "geofence" in prov
+    # shipped again from a shipped folder: the run's record carries over
+    old = json.loads((policy_dir("generalist") / "provenance.json").read_text())
+    assert prov["teacher"] == old["teacher"] and prov["final_eval"] == old["final_eval"]
+    assert prov["seed"] == old["seed"] and prov["shipped_from"]["name"] == "generalist"
     policy, env, spec = load_policy_dir(out, env=DroneNavEnv("random", split="heldout", seed=0))
     assert spec.revisit_guard and spec.ego_map["geofence"] == "env"
     assert [type(m).__name__ for m in policy][-2:] == ["LoopGuard", "RevisitGuard"]

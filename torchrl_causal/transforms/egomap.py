@@ -116,7 +116,7 @@ class EgoMap(Transform):
         geofence: None (default: no fence in the mask); ``"env"``: the base
             :class:`~torchrl_causal.envs.DroneNavEnv`'s arena and ceiling,
             read at every reset (or a :class:`~torchrl_causal.envs.TelloEnv`'s
-            own ``geofence`` and ``max_height``); or ``(x_min, y_min, x_max, y_max)`` (m) in the
+            own ``geofence``, if any, and ``max_height``); or ``(x_min, y_min, x_max, y_max)`` (m) in the
             start frame (x forward, y left at reset). ``action_mask`` then
             forbids a horizontal move that would end outside it (less
             ``geofence_margin``) and, with ``"env"``, an ascent above the
@@ -256,11 +256,12 @@ class EgoMap(Transform):
         parent = self.parent
         base = getattr(parent, "base_env", None) if parent is not None else None
         layout = getattr(base, "layout", None)
-        fence = getattr(base, "geofence", None)
-        if layout is None and isinstance(fence, tuple) and len(fence) == 4:
-            # a TelloEnv: its own geofence, in the take-off frame, and its height limit
-            out[:, 3:7] = torch.tensor(fence, device=device)
-            out[:, 7] = float(getattr(base, "max_height", inf))
+        if layout is None and hasattr(base, "geofence") and hasattr(base, "max_height"):
+            # a TelloEnv: its own geofence (None: none), in the take-off frame, and its
+            # height limit
+            if base.geofence is not None:
+                out[:, 3:7] = torch.tensor(tuple(base.geofence), device=device)
+            out[:, 7] = float(base.max_height)
             return out
         if layout is None or n != 1:
             raise ValueError("EgoMap geofence='env' reads the arena of one DroneNavEnv (or the "
