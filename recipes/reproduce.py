@@ -83,7 +83,7 @@ MODES = {
         "overrides": [
             "collector.total_episodes=700", "collector.total_frames=140000",
             "exploration.annealing_frames=70000", "buffer.size=100000",
-            "eval.interval_frames=20000", "eval.episodes=10",
+            "eval.interval_frames=5000", "eval.episodes=10",
             "checkpoint.interval_frames=10000",
         ],
     },
