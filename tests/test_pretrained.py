@@ -119,8 +119,10 @@ def test_ship_policy_copies_a_run_and_can_add_the_loop_guard(tmp_path, capsys):
     shutil.copytree(policy_dir("generalist"), run)
     cfg = OmegaConf.load(run / "config.yaml")
     cfg.features.loop_guard = False
-    cfg.features.ego_map = {}  # nor the flank margin
+    cfg.features.revisit_guard = False  # nor the revisit guard
+    cfg.features.ego_map = {}  # nor the flank margin or the fence
     OmegaConf.save(cfg, run / "config.yaml")
+    (run / "provenance.json").unlink()  # a run folder has no shipped record
     out = ship_policy.ship(run, "guarded", dest=tmp_path, loop_guard=True)
     spec = json.loads((out / "policy.json").read_text())
     assert spec["loop_guard"] is True and spec["shield"] is True
