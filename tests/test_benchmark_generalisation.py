@@ -110,12 +110,31 @@ def test_goal_search_rows_fly_the_same_episodes_with_a_search_for_a_hidden_goal(
             gb.main(["--pretrained", "generalist", "--goal-search", bad])
 
 
-def test_fence_and_revisit_rows_fly_the_same_episodes_with_the_options_added():
-    rows = gb.main(["--pretrained", "generalist", "--episodes", "2", "--settings", "heldout",
-                    "--geofence", "--revisit-guard", "--no-oracle"])
+def test_fence_and_revisit_rows_fly_the_same_episodes_with_the_options_added(tmp_path):
+    """--geofence / --revisit-guard add rows to a run that flies without them (the generalist
+    as shipped before them); the shipped generalist, which has both, flies as the last row."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from torchrl_causal.pretrained import policy_dir
+
+    run = tmp_path / "seed1"
+    shutil.copytree(policy_dir("generalist"), run)
+    cfg = OmegaConf.load(run / "config.yaml")
+    cfg.features.revisit_guard = False
+    cfg.features.ego_map = {"flank_margin": 0.3}
+    OmegaConf.save(cfg, run / "config.yaml")
+    rows = gb.main(["--runs", str(run), "--pretrained", "generalist", "--episodes", "2",
+                    "--settings", "heldout", "--geofence", "--revisit-guard", "--no-oracle"])
     runs = [r for r in rows if r["figure"] == "run"]
-    assert [r["variant"] for r in runs] == ["cbn_v2", "cbn_v2/fence", "cbn_v2/fence/revisit"]
+    assert [(r["name"], r["variant"]) for r in runs] == [
+        ("seed1", "cbn_v2"), ("seed1", "cbn_v2/fence"), ("seed1", "cbn_v2/fence/revisit"),
+        ("pretrained:generalist", "cbn_v2"), ("pretrained:generalist", "cbn_v2/fence")]
     assert len({r["goal_hidden_at_start"] for r in runs}) == 1
-    assert all(r["episodes"] == 2 and r["out_of_bounds"] in (0, 1, 2) for r in runs)
+    assert all(r["episodes"] == 2 for r in runs)
     # the fence keeps every flight inside the arena
-    assert runs[1]["out_of_bounds"] == runs[2]["out_of_bounds"] == 0
+    assert all(r["out_of_bounds"] == 0 for r in runs[1:])
+    # the options added by the benchmark fly as the shipped policy that has them
+    assert runs[2]["success_rate"] == runs[3]["success_rate"]
+    assert runs[2]["mean_length"] == runs[3]["mean_length"]
