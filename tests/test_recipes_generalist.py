@@ -80,6 +80,24 @@ def test_goal_search_in_the_config_builds_a_searching_policy(tmp_path):
     assert [type(m).__name__ for m in policy_guards(spec)] == ["GoalSearch"]
 
 
+def test_revisit_guard_in_the_config_builds_a_guarded_policy_and_needs_a_map(tmp_path):
+    cfg = _cfg([f"output_dir={tmp_path}", "features.revisit_guard=true",
+                "features.loop_guard=true"])
+    ru.validate_config(cfg, tmp_path)
+    spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant])
+    from torchrl_causal.pretrained.policy import policy_guards
+
+    assert spec.revisit_guard
+    assert [type(m).__name__ for m in policy_guards(spec)] == ["LoopGuard", "RevisitGuard"]
+    bad = _cfg([f"output_dir={tmp_path}", "features.revisit_guard=true",
+                "features.inputs=[causal_features,action_history]", "features.shield=false"])
+    with pytest.raises(ValueError, match="features.revisit_guard"):
+        ru.validate_config(bad, tmp_path)
+    with pytest.raises(ValueError, match="features.revisit_guard"):
+        ru.validate_config(_cfg([f"output_dir={tmp_path}", "features.revisit_guard=3"]),
+                           tmp_path)
+
+
 def test_ego_map_input_needs_the_image_off(tmp_path):
     cfg = _cfg([f"output_dir={tmp_path}", "features.inputs=[ego_map,causal_features,action_history]",
                 "features.image=true"])
