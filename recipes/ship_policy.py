@@ -125,26 +125,30 @@ def ship(run_dir, name: str, *, command: str | None = None, notes: str = "",
         "commit": _commit(),
         "notes": notes,
     }
-    for key in ("loop_guard", "flank_margin", "revisit_guard", "geofence"):
+    # what shipping changed against the run as trained: (key, flag, changed, setting or None)
+    shipped_changes = (
+        ("loop_guard", "--loop-guard", loop_guard and not trained_with_guard, None),
+        ("flank_margin", "--flank-margin",
+         flank_margin is not None and trained_flank != flank_margin,
+         (f"{flank_margin or 0:g} m", f"{trained_flank or 0:g} m")),
+        ("revisit_guard", "--revisit-guard", revisit_guard and not trained_revisit, None),
+        ("geofence", "--geofence", geofence is not None and trained_fence != geofence,
+         (repr(geofence), repr(trained_fence))),
+    )
+    for key, _, _, _ in shipped_changes:
         if key in prior:
             provenance[key] = prior[key]
     if prior:
         provenance["shipped_from"] = {"name": prior.get("name"), "commit": prior.get("commit"),
                                       "command": prior.get("command")}
-    if loop_guard and not trained_with_guard:
-        provenance["loop_guard"] = ("added when shipped (ship_policy.py --loop-guard): the run "
-                                    "trained and made final_eval without it")
-    if flank_margin is not None and trained_flank != flank_margin:
-        provenance["flank_margin"] = (f"EgoMap flank_margin {flank_margin:g} m set when shipped "
-                                      f"(ship_policy.py --flank-margin); the run trained and made "
-                                      f"final_eval with {trained_flank or 0:g} m")
-    if revisit_guard and not trained_revisit:
-        provenance["revisit_guard"] = ("added when shipped (ship_policy.py --revisit-guard): the "
-                                       "run trained and made final_eval without it")
-    if geofence is not None and trained_fence != geofence:
-        provenance["geofence"] = (f"EgoMap geofence {geofence!r} set when shipped "
-                                  f"(ship_policy.py --geofence); the run trained and made "
-                                  f"final_eval with {trained_fence!r}")
+    for key, flag, changed, setting in shipped_changes:
+        if not changed:
+            continue
+        provenance[key] = (
+            f"added when shipped (ship_policy.py {flag}): the run trained and made final_eval "
+            f"without it" if setting is None else
+            f"EgoMap {key} {setting[0]} set when shipped (ship_policy.py {flag}); the run "
+            f"trained and made final_eval with {setting[1]}")
     spec = train.policy_spec(cfg, ru.VARIANTS[cfg.variant], provenance=provenance)
     out = dest / name
     out.mkdir(parents=True, exist_ok=True)

@@ -38,6 +38,21 @@ INVERSE_ACTIONS: tuple[int, ...] = tuple(
                                     "turn_right", "turn_left"))
 
 
+def _check_int(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+
+
+def _action_index(guard, tensordict: TensorDictBase) -> torch.Tensor:
+    """The chosen action as an index (a guard cannot read a one-hot or float action)."""
+    action = tensordict.get(guard.action_key)
+    if action.is_floating_point() or action.shape[-1:] == (guard.n_actions,) and \
+            action.dtype == torch.bool:
+        raise ValueError(f"{type(guard).__name__} needs an action index, got {action.dtype} "
+                         f"{tuple(action.shape)}")
+    return action
+
+
 class LoopGuard(TensorDictModuleBase):
     """Replaces an action that would repeat a two-move loop by the best other one.
 
@@ -74,8 +89,7 @@ class LoopGuard(TensorDictModuleBase):
                  history_key="action_history", action_key="action",
                  action_value_key="action_value", action_mask_key=None):
         super().__init__()
-        if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 2:
-            raise ValueError(f"n_actions must be an int >= 2, got {n_actions!r}")
+        _check_int("n_actions", n_actions, 2)
         inverse = tuple(int(i) for i in inverse)
         if len(inverse) != n_actions or any(not 0 <= i < n_actions for i in inverse) or \
                 any(inverse[i] == i for i in range(n_actions)):
@@ -103,11 +117,7 @@ class LoopGuard(TensorDictModuleBase):
                 & (h[..., 2] == h[..., 0]) & (h[..., 3] == h[..., 1]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(self.action_key)
-        if action.is_floating_point() or action.shape[-1:] == (self.n_actions,) and \
-                action.dtype == torch.bool:
-            raise ValueError(f"LoopGuard needs an action index, got {action.dtype} "
-                             f"{tuple(action.shape)}")
+        action = _action_index(self, tensordict)
         q = tensordict.get(self.action_value_key)
         fire = self.loops(tensordict.get(self.history_key), action)
         allowed = torch.ones_like(q, dtype=torch.bool)
@@ -158,10 +168,8 @@ class RevisitGuard(TensorDictModuleBase):
     def __init__(self, n_actions: int = 8, repeats: int = 1, *, counts_key="visit_counts",
                  action_key="action", action_value_key="action_value", action_mask_key=None):
         super().__init__()
-        if isinstance(n_actions, bool) or not isinstance(n_actions, int) or n_actions < 2:
-            raise ValueError(f"n_actions must be an int >= 2, got {n_actions!r}")
-        if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
-            raise ValueError(f"RevisitGuard repeats must be an int >= 1, got {repeats!r}")
+        _check_int("n_actions", n_actions, 2)
+        _check_int("RevisitGuard repeats", repeats, 1)
         self.n_actions, self.repeats = n_actions, repeats
         self.counts_key, self.action_key = counts_key, action_key
         self.action_value_key, self.action_mask_key = action_value_key, action_mask_key
@@ -170,11 +178,7 @@ class RevisitGuard(TensorDictModuleBase):
         self.out_keys = [action_key, "revisit_guard_fired"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(self.action_key)
-        if action.is_floating_point() or action.shape[-1:] == (self.n_actions,) and \
-                action.dtype == torch.bool:
-            raise ValueError(f"RevisitGuard needs an action index, got {action.dtype} "
-                             f"{tuple(action.shape)}")
+        action = _action_index(self, tensordict)
         q = tensordict.get(self.action_value_key).float()
         counts = tensordict.get(self.counts_key).float().expand_as(q)
         allowed = torch.ones_like(q, dtype=torch.bool)
