@@ -335,7 +335,7 @@ def run(variant: str, frames: int, ratio: float, n_envs: int, out: Path,
     overrides = [
         f"output_dir={out}", f"collector.total_frames={frames}", "eval.episodes=0",
         "eval.final_episodes=0", "eval.keep_best=false", "checkpoint.interval_frames=0",
-        "outputs.draw_cbns=false", "logger.backend=none", "progress=false",
+        "outputs.draw_cbns=false", "outputs.videos=0", "logger.backend=none", "progress=false",
         "loss.learning_starts=200", "loss.target_update_interval=50",
         f"exploration.annealing_frames={frames}", f"loss.updates_per_frame={ratio}",
         f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs}",

@@ -25,7 +25,7 @@ def test_train_on_cuda(variant, tmp_path):
         "collector.total_frames=400", "loss.learning_starts=100",
         "loss.target_update_interval=20", "causal.k=100", "eval.interval_frames=200",
         "eval.episodes=1", "eval.final_episodes=1", "env.eval_layouts=[thesis]",
-        "env.max_steps=50", "progress=false", "outputs.draw_cbns=false",
+        "env.max_steps=50", "progress=false", "outputs.draw_cbns=false", "outputs.videos=0",
     ]
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     r = subprocess.run([sys.executable, str(ROOT / "recipes" / "train.py"), *args],
