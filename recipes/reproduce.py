@@ -396,6 +396,59 @@ def compose_run_config(overrides: list[str], variant: str = "cbn_v2"):
         return compose("base", [*plain, f"variant={variant}"])
 
 
+#: Top-level config keys that say where and how a run ran, not what it computed: a grid
+#: may resume or extend runs that differ in these (``seed`` differs per run by design).
+RUN_ONLY_KEYS = ("seed", "device", "threads", "progress", "output_dir", "checkpoint",
+                 "logger", "outputs")
+
+
+def _flatten(node, prefix: str = "") -> dict:
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: node}
+
+
+def check_root_configs(root: Path, plan: list[Run], overrides: list[str]) -> None:
+    """Refuses a ``--root`` whose run folders hold runs of another config than the grid's
+    (another ``--mode``, preset or override), before any job starts: such a run would be
+    resumed, or counted as done, under the wrong protocol. Keys of :data:`RUN_ONLY_KEYS`
+    may differ (a run of the grid may have trained on a GPU, for instance).
+
+    Raises:
+        ValueError: naming ``--root``, the run folder and the keys that differ.
+    """
+    from omegaconf import OmegaConf
+
+    expected: dict[tuple, dict] = {}
+    for r in plan:
+        path = r.run_dir / ru.RUN_LAYOUT["config"]
+        if not path.exists():
+            continue
+        key = (r.group, r.value)
+        if key not in expected:
+            variant, extra = ((r.value, []) if r.group == "variants"
+                              else ("cbn_v2", [f"causal.k={r.value}"]))
+            cfg = compose_run_config(merge_overrides(overrides, extra), variant)
+            expected[key] = _flatten(OmegaConf.to_container(cfg, resolve=True))
+        stored = _flatten(OmegaConf.to_container(OmegaConf.load(path), resolve=True))
+        want = expected[key]
+        missing = object()
+        diff = sorted(k for k in set(want) | set(stored)
+                      if k.split(".")[0] not in RUN_ONLY_KEYS
+                      and want.get(k, missing) != stored.get(k, missing))
+        if diff:
+            shown = "; ".join(f"{k}: {stored.get(k, '(absent)')!r} there, "
+                              f"{want.get(k, '(absent)')!r} in this grid" for k in diff[:4])
+            more = f" and {len(diff) - 4} more" if len(diff) > 4 else ""
+            raise ValueError(
+                f"Invalid option --root={root}: {r.run_dir} holds a run of another config "
+                f"({shown}{more}). Give another --root, or the same --mode, preset and "
+                "overrides as that grid.")
+
+
 def warmup_overrides(cfg, frames: int, out: Path) -> list[str]:
     """A ``frames``-frame run with the grid run's replay ratio and share of frames before
     learning starts, no evaluation, checkpoint or drawing."""
@@ -619,6 +672,7 @@ def main(argv=None) -> dict:
     overrides = merge_overrides(MODES[args.mode]["overrides"], extra)
     if not args.aggregate_only:
         plan = run_plan(root, args.mode, seeds, args.variants, args.k, args.groups)
+        check_root_configs(root, plan, overrides)  # before the warm-up and any job
         pending = [r for r in plan if not (r.run_dir / "summary.json").exists()]
         if pending and not args.no_estimate:
             cfg = compose_run_config(overrides)  # a bad override fails here, before training

@@ -220,3 +220,34 @@ def test_ray_options_need_the_ray_launcher(tmp_path):
     with pytest.raises(ValueError, match="--cpus-per-run"):
         reproduce.main(["--launcher", "basic", "--cpus-per-run", "0", "--root",
                         str(tmp_path), "--no-estimate"])
+
+
+def _write_run_config(run_dir, overrides, variant):
+    from omegaconf import OmegaConf
+
+    run_dir.mkdir(parents=True)
+    cfg = reproduce.compose_run_config(overrides, variant)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+
+
+def test_root_of_another_config_is_refused_before_any_job(tmp_path, capsys):
+    """A --root holding runs of another mode/preset is named before the warm-up or any job;
+    runs that differ only in where they ran (device, threads) are the grid's own."""
+    full = reproduce.MODES["full"]["overrides"]
+    _write_run_config(tmp_path / "variants" / "cbn_p" / "seed_0",
+                      [*full, "seed=0", "device=cuda", "threads=1", "progress=false"], "cbn_p")
+    assert reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_p",
+                           "--groups", "variants", "--dry-run", "--no-estimate",
+                           "--root", str(tmp_path)]) == {}
+    assert "resumes" not in capsys.readouterr().out  # a config only, no checkpoint
+    _write_run_config(tmp_path / "k_sweep" / "k_400" / "seed_0",
+                      [*reproduce.MODES["reduced"]["overrides"], "causal.k=400"], "cbn_v2")
+    with pytest.raises(ValueError, match=r"--root=.*k_400/seed_0 holds a run of another "
+                                         r"config \(.*collector.total_frames: 2000 there, "
+                                         r"140000 in this grid"):
+        reproduce.main(["--mode", "full", "--seeds", "1", "--k", "400", "--dry-run",
+                        "--root", str(tmp_path)])
+    with pytest.raises(ValueError, match="env.reward: 'progress' there, 'thesis'"):
+        reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_p",
+                        "--groups", "variants", "--dry-run", "--root", str(tmp_path),
+                        "preset=thesis"])
