@@ -520,6 +520,43 @@ def _finished_runs(folder: Path) -> list[dict]:
     return [r for r in results.load_runs(folder) if (r["dir"] / "summary.json").exists()]
 
 
+#: What :func:`export_records` keeps of a finished run: every file the figures and tables are
+#: drawn from, and the run's own tables (no checkpoint, buffer, model, plots or videos).
+RECORD_FILES = ("config.yaml", "summary.json", "episodes.csv", "eval.csv", "relearns.csv")
+
+
+def export_records(root: Path, dest: Path) -> list[Path]:
+    """Copies the records of every finished run under ``root`` to ``dest`` (same layout):
+    a few hundred kB per run, enough for ``--aggregate-only --root dest`` to draw the same
+    figures and tables on another machine, or to publish a grid with its figures.
+
+    Returns:
+        The run folders written under ``dest``.
+
+    Raises:
+        ValueError: naming ``--export`` when it lies inside ``--root`` or holds no run folder.
+    """
+    import shutil
+
+    root, dest = root.resolve(), dest.resolve()
+    if dest == root or root in dest.parents:
+        raise ValueError(f"Invalid option --export={dest}: it lies inside --root={root}")
+    written = []
+    for group in ("variants", "k_sweep"):
+        for run in _finished_runs(root / group):
+            out = dest / run["dir"].relative_to(root)
+            out.mkdir(parents=True, exist_ok=True)
+            for name in RECORD_FILES:
+                if (run["dir"] / name).exists():
+                    shutil.copy2(run["dir"] / name, out / name)
+            if (run["dir"] / "tables").is_dir():
+                shutil.copytree(run["dir"] / "tables", out / "tables", dirs_exist_ok=True)
+            written.append(out)
+    if not written:
+        raise ValueError(f"Invalid option --export={dest}: --root={root} holds no finished run")
+    return written
+
+
 def aggregate(root: Path) -> dict:
     """Draws Fig. 5.3 / 5.4-style figures and the summary tables from all runs under ``root``."""
     fig_dir, tab_dir = root / "figures", root / "tables"
@@ -635,6 +672,11 @@ def main(argv=None) -> dict:
     p.add_argument("--estimate-only", action="store_true",
                    help="print the estimate and stop before launching")
     p.add_argument("--aggregate-only", action="store_true")
+    p.add_argument("--export", type=Path, default=None,
+                   help="afterwards, copy the records of every finished run (configs, "
+                        "summaries, episode/eval/relearn CSVs, tables; no checkpoints or "
+                        "models) to this folder, from which --aggregate-only --root draws "
+                        "the same figures")
     p.add_argument("--dry-run", action="store_true",
                    help="print the multirun commands and the estimate's formula, train nothing")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
@@ -704,6 +746,9 @@ def main(argv=None) -> dict:
     out = aggregate(root)
     print(f"Figures: {root / 'figures'}")
     print(f"Tables: {root / 'tables'}")
+    if args.export is not None:
+        written = export_records(root, args.export)
+        print(f"Records of {len(written)} finished runs: {args.export}")
     if not args.aggregate_only and failed:
         raise RuntimeError(
             f"{len(failed)} run(s) did not finish: {[str(r.run_dir) for r in failed]} (the "

@@ -80,6 +80,18 @@ def test_two_run_grid_through_joblib(tmp_path):
     _check_grid(root, runs, out)
     # the sweep's k wins over TINY's causal.k=60
     assert json.loads((runs[1] / "summary.json").read_text())["k"] == 100
+    # --export: the records alone (no checkpoint or model) redraw the same tables
+    rec = tmp_path / "records"
+    reproduce.main(["--aggregate-only", "--root", str(root), "--export", str(rec)])
+    assert sorted(p.name for p in (rec / "variants" / "dqn_image" / "seed_0").iterdir()) == [
+        "config.yaml", "episodes.csv", "eval.csv", "relearns.csv", "summary.json", "tables"]
+    assert not list(rec.rglob("*.pt"))
+    reproduce.main(["--aggregate-only", "--root", str(rec)])
+    assert (rec / "tables" / "summary.md").read_text() == \
+        (root / "tables" / "summary.md").read_text()
+    with pytest.raises(ValueError, match=r"--export=.*inside --root"):
+        reproduce.main(["--aggregate-only", "--root", str(root), "--export",
+                        str(root / "x")])
 
 
 def test_unknown_launcher_is_named_before_any_work(tmp_path):
