@@ -113,6 +113,10 @@ def parse_args(argv=None):
     p.add_argument("--goal-standoff", type=float, default=None,
                    help="the goal point in front of the board's face (m) for --reach-offset "
                         "(default: the emulated layout's; 0.45 on a real drone)")
+    p.add_argument("--arrival-head", default=None,
+                   help="weights of the learned arrival head (recipes/train_arrival.py): the "
+                        "--reach-offset distance is then read from the camera frame by it "
+                        "instead of the depth map's board plane (needs --reach-offset)")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
     a = p.parse_args(argv)
@@ -153,6 +157,12 @@ def parse_args(argv=None):
                     f"got --perception {a.perception!r}")
         if not Path(path).is_file():
             p.error(f"{flag} {path!r}: no such file")
+    if a.arrival_head is not None:
+        if a.reach_offset is None:
+            p.error(f"--arrival-head {a.arrival_head!r} needs --reach-offset (e.g. 0.2): the "
+                    "head estimates the distance to the goal point that it bounds")
+        if not Path(a.arrival_head).is_file():
+            p.error(f"--arrival-head {a.arrival_head!r}: no such file")
     if a.no_height_check:
         a.reach_height = None
     try:
@@ -237,6 +247,10 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
     from torchrl_causal.envs import TelloEnv
 
     kw = {"reach_rule": args.reach_rule}
+    if getattr(args, "arrival_head", None):
+        from torchrl_causal.perception.arrival import GoalOffsetEstimator
+
+        kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
     if layout is not None:  # the emulated scene's flight volume, in the take-off frame
         x0, y0, _ = layout.start_pos
         xa, ya, xb, yb = layout.arena
@@ -350,7 +364,7 @@ def main(argv=None) -> dict:
     summary: dict = {"run": str(run), "target": args.host or "emulator",
                      "episodes": args.episodes, "perception": args.perception,
                      "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}
-    for opt in ("depth_weights", "detector_weights"):
+    for opt in ("depth_weights", "detector_weights", "arrival_head"):
         if getattr(args, opt, None):
             summary[opt] = str(getattr(args, opt))
     if real:

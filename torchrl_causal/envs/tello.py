@@ -75,6 +75,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
+from ..perception.arrival import segment_distance
 from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
 from ..perception.video_path import crop_resize
 from ..schema import ACTION_NAMES
@@ -184,6 +185,13 @@ class TelloEnv(EnvBase):
             it has one (the shipped MonoDepth does), else 0.45 m; goal in sight
             within it and 30 deg; give it ``goal_height`` to check the height
             sensor too, as ``fly_tello.py`` does).
+        arrival_head: a :class:`~torchrl_causal.perception.arrival.GoalOffsetEstimator`
+            (or any callable: uint8 frames ``[B, H, W, 3]`` -> ``[B, 2]`` offsets
+            ``(ahead, lateral)`` in m from the goal point): the rule's ``goal_offset``
+            is then read from the camera frame by this learned head (3-D with the
+            height sensor's difference, to the segment since the last step's
+            estimate) instead of the depth map's board plane; needs a ``reach_rule``
+            with ``max_goal_offset`` (docs/tello.rst, "A learned arrival head").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
@@ -242,6 +250,7 @@ class TelloEnv(EnvBase):
         reward="thesis",
         confidence_threshold: float = 0.7,
         reach_rule: ReachRule | None = None,
+        arrival_head: Callable | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         min_height: float = 0.2,
         max_height: float = 2.5,
@@ -290,6 +299,12 @@ class TelloEnv(EnvBase):
             reach_rule = ReachRule() if d is None else ReachRule(max_distance=float(d))
         if not isinstance(reach_rule, ReachRule):
             raise ValueError(f"reach_rule must be a ReachRule or None, got {reach_rule!r}")
+        if arrival_head is not None and not callable(arrival_head):
+            raise ValueError(f"arrival_head must be a callable or None, got {arrival_head!r}")
+        if arrival_head is not None and reach_rule.max_goal_offset is None:
+            raise ValueError("arrival_head needs a reach_rule with max_goal_offset (the "
+                             "distance to the goal point it estimates is compared with it), "
+                             f"got {reach_rule!r}")
         if geofence is not None:
             if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
                     or not all(isinstance(v, (int, float)) for v in geofence)
@@ -328,6 +343,8 @@ class TelloEnv(EnvBase):
         self.max_steps = int(max_steps)
         self.max_depth = float(max_depth)
         self.reach_rule = reach_rule
+        self.arrival_head = arrival_head
+        self._prev_offset = None  # the arrival head's last (ahead, lateral), for the segment
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
         self.max_height = float(max_height)
@@ -570,6 +587,7 @@ class TelloEnv(EnvBase):
             >>> env.close()
         """
         pixels = self.preprocess(frame)
+        self._prev_offset = None  # one frame alone: no segment
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
         depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
         meas = self.goal_meter(pixels.unsqueeze(0), depth)
@@ -580,21 +598,33 @@ class TelloEnv(EnvBase):
                "box": [float(v) for v in meas.box[0].tolist()]}
         rule = self.reach_rule
         alt = altitude if altitude is not None else (rule.goal_height or 0.0)
-        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"], alt)
+        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"], alt, frame)
         out["reached"] = rule(in_sight=in_sight, distance=out["distance"], angle=out["angle"],
                               box=out["box"], width=self.image_size[1], altitude=alt,
                               goal_offset=out["goal_offset"])
         return out
 
-    def _goal_offset(self, in_sight: bool, depth, box, altitude: float) -> float | None:
-        """The reach rule's goal-point offset estimate (only when the rule uses it)."""
+    def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
+                     frame=None) -> float | None:
+        """The reach rule's goal-point offset estimate (only when the rule uses it): from
+        the arrival head on ``frame`` when there is one, else from the depth map."""
+        if self.arrival_head is not None:
+            prev, self._prev_offset = self._prev_offset, None
+            if not in_sight or frame is None:
+                return None
+            cur = np.asarray(self.arrival_head(np.asarray(frame)[None]), float).reshape(-1)[:2]
+            self._prev_offset = cur
+            rule = self.reach_rule
+            dz = (rule.goal_height - altitude) if rule.goal_height is not None else 0.0
+            return segment_distance(cur if prev is None else prev, cur, dz)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,
                                            moved=self._last_move, altitude=altitude)
 
     def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
-        pixels = self.preprocess(self._fresh_frame(frame_since))
+        frame = self._fresh_frame(frame_since)
+        pixels = self.preprocess(frame)
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
         depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
         meas = self.goal_meter(pixels.unsqueeze(0), depth)
@@ -608,7 +638,8 @@ class TelloEnv(EnvBase):
         reached = not crashed and self.reach_rule(
             in_sight=in_sight, distance=dist, angle=angle, box=box,
             width=self.image_size[1], altitude=alt,
-            goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box, alt))
+            goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box, alt,
+                                                               frame))
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
@@ -631,6 +662,7 @@ class TelloEnv(EnvBase):
             self._steps = 0
             self._prev_distance = None
             self._last_move = (0.0, 0.0, 0.0)
+            self._prev_offset = None
             obs = self._observe(self._current_frame())
         except BaseException as e:
             self.land(reason=f"exception in reset: {e!r}")

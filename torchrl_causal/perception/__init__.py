@@ -37,6 +37,8 @@ _LAZY = {
     "evaluate_depth": "torchrl_causal.perception.depth",
     "VideoPath": "torchrl_causal.perception.video_path",
     "crop_resize": "torchrl_causal.perception.video_path",
+    "GoalOffsetNet": "torchrl_causal.perception.arrival",
+    "GoalOffsetEstimator": "torchrl_causal.perception.arrival",
 }
 __all__ += list(_LAZY)
 

@@ -1,0 +1,85 @@
+"""Train and measure the learned arrival head (``GoalOffsetEstimator``, docs/tello.rst).
+
+Renders frames near the thesis board through the Tello camera path (H.264 at the
+Tello's 960 x 720 and the emulator's 320 x 240), trains :class:`GoalOffsetNet` on them,
+measures it on frames of another seed and writes the weights with the figures::
+
+    python recipes/train_arrival.py --out outputs/arrival/arrival.pt --train 4000 --test 600
+
+Prints one JSON object (the test figures); ``fly_tello.py --arrival-head PATH
+--reach-offset 0.2`` flies with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def evaluate(est, frames, labels, thresholds=(0.16, 0.18, 0.2, 0.22)) -> dict:
+    """Errors of the offsets, and where the rule "estimated 3-D distance <= t" fires
+    inside and outside the 0.2 m goal sphere (the height difference as the sensor gives)."""
+    pred = np.concatenate([est(torch.as_tensor(frames[i:i + 256])).numpy()
+                           for i in range(0, len(frames), 256)])
+    err = np.abs(pred - labels[:, :2])
+    true = np.sqrt((labels[:, :3] ** 2).sum(1))
+    est_d = np.sqrt(pred[:, 0] ** 2 + pred[:, 1] ** 2 + labels[:, 2] ** 2)
+    inside = true <= 0.2
+    rows = []
+    for t in thresholds:
+        fire = est_d <= t
+        rows.append({"threshold_m": t, "fire_inside": round(float(fire[inside].mean()), 3),
+                     "fire_outside": round(float(fire[~inside].mean()), 3),
+                     "agreement": round(float((fire == inside).mean()), 3)})
+    return {"n": int(len(labels)), "n_inside": int(inside.sum()),
+            "mae_ahead_m": round(float(err[:, 0].mean()), 4),
+            "mae_lateral_m": round(float(err[:, 1].mean()), 4),
+            "p90_ahead_m": round(float(np.quantile(err[:, 0], 0.9)), 4),
+            "p90_lateral_m": round(float(np.quantile(err[:, 1], 0.9)), 4),
+            "rule": rows}
+
+
+def main(argv=None) -> dict:
+    from torchrl_causal.perception.arrival import render_offset_views, train_goal_offset
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", required=True, type=Path, help="weights file to write (.pt)")
+    p.add_argument("--train", type=int, default=4000, help="training frames")
+    p.add_argument("--test", type=int, default=600, help="test frames (another seed)")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--seed", type=int, default=1, help="seed of the training frames")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--no-progress", action="store_true")
+    a = p.parse_args(argv)
+    for name in ("train", "test", "epochs"):
+        if getattr(a, name) < 1:
+            raise ValueError(f"Invalid option --{name}={getattr(a, name)}: expected >= 1")
+    if a.out.suffix != ".pt":
+        raise ValueError(f"Invalid option --out={a.out}: expected a .pt file")
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    t0 = time.time()
+    print(f"rendering {a.train} + {a.test} frames ...", file=sys.stderr, flush=True)
+    xtr, ytr = render_offset_views(a.train, seed=a.seed)
+    xte, yte = render_offset_views(a.test, seed=a.seed + 1000)
+    t1 = time.time()
+    est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, progress=not a.no_progress)
+    t2 = time.time()
+    figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte),
+               "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
+               "render_s": round(t1 - t0, 1), "train_s": round(t2 - t1, 1),
+               "command": "python recipes/train_arrival.py " + " ".join(argv or sys.argv[1:])}
+    est.meta = figures
+    est.save(a.out)
+    print(json.dumps(figures))
+    return figures
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,269 @@
+"""Where the goal point is, from one camera frame near the board: a small learned head.
+
+A Tello decides that it has arrived from its camera alone
+(:class:`~torchrl_causal.envs.reach.ReachRule`). Near the goal point the
+1.0 m board fills the view, and MonoDepth reads it 0.25-0.40 m short
+(docs/tello.rst), so a range threshold on depth cannot tell the goal sphere
+(0.2 m) from the places around it. The board's own texture can: its marks'
+apparent size gives the range and their place and perspective the sideways
+offset. :class:`GoalOffsetNet` is a four-layer CNN that reads a frame (as
+``TelloEnv`` receives it, after the H.264 camera path) and returns the
+drone's offset from the goal point in the board's frame, ``(ahead,
+lateral)`` in metres (``ahead`` > 0: farther from the board than the goal
+point). :class:`GoalOffsetEstimator` wraps it with its input size, saves and
+loads it, and gives ``TelloEnv`` its ``goal_offset`` (the 3-D distance to
+the goal point, with the height sensor's difference; to the segment of the
+last move, since the simulator judges a pass through its sphere).
+
+:func:`render_offset_views` renders the training data: poses in front of the
+thesis board (0.35 m nearer to 0.65 m farther than the goal point, up to
+0.4 m sideways, +-0.12 m in height, yaw within 20 deg of facing it, roll and
+pitch within 3 deg), each frame through a
+:class:`~torchrl_causal.perception.video_path.VideoPath` (jitter, H.264) at
+one of the Tello path's stream sizes. ``recipes/train_arrival.py`` trains
+and evaluates it (docs/tello.rst, "A learned arrival head").
+
+Example:
+    >>> import torch
+    >>> est = GoalOffsetEstimator(GoalOffsetNet())
+    >>> est(torch.zeros(2, 96, 128, 3, dtype=torch.uint8)).shape
+    torch.Size([2, 2])
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+__all__ = ["GoalOffsetNet", "GoalOffsetEstimator", "render_offset_views", "train_goal_offset",
+           "segment_distance"]
+
+_FORMAT = "torchrl_causal.GoalOffsetEstimator"
+_VERSION = 1
+#: (height, width) the network reads; frames are centre-cropped and resized to it.
+INPUT_SIZE = (96, 128)
+
+
+class GoalOffsetNet(nn.Module):
+    """Four stride-2 convolutions and two linear layers: uint8-range RGB ``[B, 3, 96, 128]``
+    (scaled to 0-1) -> ``[B, 2]`` offsets (m). The head keeps the feature map's layout
+    (no global pooling): where the board's marks are in the image is the sideways offset.
+
+    Example:
+        >>> import torch
+        >>> GoalOffsetNet()(torch.zeros(1, 3, 96, 128)).shape
+        torch.Size([1, 2])
+    """
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        if not isinstance(width, int) or width < 4:
+            raise ValueError(f"GoalOffsetNet: width must be an int >= 4, got {width!r}")
+        w = width
+        self.width = w
+        self.features = nn.Sequential(
+            nn.Conv2d(3, w, 5, 2, 2), nn.ReLU(), nn.Conv2d(w, 2 * w, 3, 2, 1), nn.ReLU(),
+            nn.Conv2d(2 * w, 4 * w, 3, 2, 1), nn.ReLU(), nn.Conv2d(4 * w, 4 * w, 3, 2, 1),
+            nn.ReLU(), nn.Flatten())
+        h, wd = INPUT_SIZE
+        self.head = nn.Sequential(nn.Linear(4 * w * (h // 16) * (wd // 16), 64), nn.ReLU(),
+                                  nn.Linear(64, 2))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+
+def _to_input(frames) -> torch.Tensor:
+    """uint8 ``[B, H, W, 3]`` (or one ``[H, W, 3]``) frames -> float ``[B, 3, 96, 128]``."""
+    from .video_path import crop_resize
+
+    x = torch.as_tensor(np.asarray(frames) if not torch.is_tensor(frames) else frames)
+    if x.ndim == 3:
+        x = x.unsqueeze(0)
+    if x.ndim != 4 or x.shape[-1] != 3 or x.dtype != torch.uint8:
+        raise ValueError("GoalOffsetEstimator: frames must be uint8 [B, H, W, 3] or "
+                         f"[H, W, 3], got {x.dtype} {tuple(x.shape)}")
+    if tuple(x.shape[1:3]) != INPUT_SIZE:
+        x = torch.stack([crop_resize(f.numpy(), INPUT_SIZE) for f in x.cpu()])
+    return x.permute(0, 3, 1, 2).float() / 255.0
+
+
+def segment_distance(start, end, dz: float = 0.0) -> float:
+    """Distance from the goal point (the origin) to the segment ``start -> end`` in the
+    board's ``(ahead, lateral)`` plane, with a height difference ``dz`` (m).
+
+    Example:
+        >>> round(segment_distance((0.3, 0.1), (-0.3, 0.1)), 3)  # passed 0.1 m beside it
+        0.1
+        >>> round(segment_distance((0.3, 0.0), (0.2, 0.0)), 3)  # stopped 0.2 m short
+        0.2
+    """
+    a, b = np.asarray(start, float), np.asarray(end, float)
+    d = b - a
+    t = 0.0 if not d.any() else float(np.clip(-(a @ d) / (d @ d), 0.0, 1.0))
+    p = a + t * d
+    return float(math.sqrt(p @ p + dz * dz))
+
+
+class GoalOffsetEstimator:
+    """A :class:`GoalOffsetNet` with its input handling: frames in, ``(ahead, lateral)`` out.
+
+    Args:
+        net: the network (eval mode is set here).
+        meta: what the weights were trained on and measured at (JSON types), saved with them.
+
+    Example:
+        >>> import torch, tempfile, os
+        >>> est = GoalOffsetEstimator(GoalOffsetNet(), meta={"note": "untrained"})
+        >>> path = est.save(os.path.join(tempfile.mkdtemp(), "arrival.pt"))
+        >>> GoalOffsetEstimator.load(path).meta["note"]
+        'untrained'
+    """
+
+    def __init__(self, net: GoalOffsetNet, meta: dict | None = None):
+        if not isinstance(net, GoalOffsetNet):
+            raise ValueError(f"GoalOffsetEstimator: net must be a GoalOffsetNet, got {net!r}")
+        self.net = net.eval()
+        self.meta = dict(meta or {})
+
+    @torch.no_grad()
+    def __call__(self, frames) -> torch.Tensor:
+        """``[B, 2]`` offsets (m) of uint8 RGB frames of any 4:3-croppable size."""
+        return self.net(_to_input(frames))
+
+    def save(self, path) -> Path:
+        """Writes the weights, the network's width and :attr:`meta` to ``path``."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"format": _FORMAT, "version": _VERSION, "width": self.net.width,
+                    "state_dict": self.net.state_dict(), "meta": self.meta}, path)
+        return path
+
+    @classmethod
+    def load(cls, path) -> GoalOffsetEstimator:
+        """Loads weights written by :meth:`save`.
+
+        Raises:
+            FileNotFoundError: no such file (naming it and the command that trains one).
+            RuntimeError: a file of another format.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"No arrival head at {path}; train one with "
+                                    "python recipes/train_arrival.py --out PATH")
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001 - any unreadable file is named
+            raise RuntimeError(f"{path} is not an arrival head ({e})") from e
+        if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
+            raise RuntimeError(f"{path} is not an arrival head (format "
+                               f"{blob.get('format') if isinstance(blob, dict) else None!r})")
+        net = GoalOffsetNet(int(blob["width"]))
+        net.load_state_dict(blob["state_dict"])
+        return cls(net, blob.get("meta"))
+
+
+def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 320)),
+                        video_path_options: dict | None = None):
+    """``n`` frames near the thesis board through the Tello camera path, with labels.
+
+    Args:
+        n: how many frames (>= 1).
+        seed: seed of the poses and of the camera path's jitter.
+        stream_sizes: the video stream sizes, used in turn (the Tello's 960 x 720 and the
+            emulator's default 320 x 240).
+        video_path_options: extra :class:`~torchrl_causal.perception.video_path.VideoPath`
+            options.
+
+    Returns:
+        ``(frames uint8 [n, 96, 128, 3], labels float32 [n, 4])``: ``ahead``,
+        ``lateral``, ``dz`` (m, the drone above the goal point) and the yaw off the board's
+        normal (deg).
+    """
+    from ..envs import DroneNavEnv
+    from .dataset import _quat
+    from .video_path import VideoPath, crop_resize
+
+    if not isinstance(n, int) or n < 1:
+        raise ValueError(f"n must be an int >= 1, got {n!r}")
+    sizes = [tuple(int(v) for v in s) for s in stream_sizes]
+    envs = {s: DroneNavEnv("thesis", image_size=s, seed=0) for s in sizes}
+    paths = {s: VideoPath(stream_size=s, seed=seed + i, **(video_path_options or {}))
+             for i, s in enumerate(sizes)}
+    rng = np.random.default_rng(seed)
+    frames, labels = [], []
+    try:
+        for env in envs.values():
+            env.reset()
+        lay = envs[sizes[0]].layout
+        gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
+        normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+        side = np.array([-normal[1], normal[0]])
+        facing = math.degrees(math.atan2(-normal[1], -normal[0]))
+        for i in range(n):
+            size = sizes[i % len(sizes)]
+            env = envs[size]
+            qa = env.ids.qpos_adr
+            ahead, lat = rng.uniform(-0.35, 0.65), rng.uniform(-0.4, 0.4)
+            dz = rng.uniform(-0.12, 0.12)
+            dyaw = rng.uniform(-20, 20)
+            xy = gp[:2] + ahead * normal + lat * side
+            env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2] + dz)
+            env.data.qpos[qa + 3:qa + 7] = _quat(facing + dyaw, rng.uniform(-3, 3),
+                                                 rng.uniform(-3, 3))
+            rgb = np.asarray(env._observe(False, False)["pixels"])
+            frames.append(crop_resize(paths[size](rgb), INPUT_SIZE).numpy())
+            labels.append((ahead, lat, dz, dyaw))
+    finally:
+        for env in envs.values():
+            env.close()
+        for p in paths.values():
+            p.close()
+    return np.stack(frames), np.asarray(labels, np.float32)
+
+
+def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width: int = 16,
+                      lr: float = 1e-3, batch_size: int = 64, progress: bool = False
+                      ) -> GoalOffsetEstimator:
+    """Trains a :class:`GoalOffsetNet` on :func:`render_offset_views`' output (smooth-L1 on
+    ``(ahead, lateral)``, Adam, horizontal flips with the lateral sign flipped).
+
+    Raises:
+        ValueError: frames and labels of other shapes or counts, or a bad option.
+    """
+    x = torch.as_tensor(np.asarray(frames))
+    y = torch.as_tensor(np.asarray(labels, np.float32))
+    if x.ndim != 4 or tuple(x.shape[1:]) != (*INPUT_SIZE, 3) or x.dtype != torch.uint8:
+        raise ValueError(f"frames must be uint8 [N, {INPUT_SIZE[0]}, {INPUT_SIZE[1]}, 3], got "
+                         f"{x.dtype} {tuple(x.shape)}")
+    if y.ndim != 2 or y.shape[0] != x.shape[0] or y.shape[1] < 2:
+        raise ValueError(f"labels must be [N, >=2] with N = {x.shape[0]}, got {tuple(y.shape)}")
+    for name, v in (("epochs", epochs), ("batch_size", batch_size)):
+        if not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    net = GoalOffsetNet(width)
+    opt = torch.optim.Adam(net.parameters(), lr)
+    xf = x.permute(0, 3, 1, 2).float() / 255.0
+    target = y[:, :2]
+    from tqdm.auto import tqdm
+
+    for _ in tqdm(range(epochs), desc="arrival head", disable=not progress):
+        net.train()
+        perm = torch.randperm(len(xf), generator=gen)
+        for i in range(0, len(xf), batch_size):
+            b = perm[i:i + batch_size]
+            flip = torch.rand(len(b), generator=gen) < 0.5
+            xb = torch.where(flip[:, None, None, None], xf[b].flip(-1), xf[b])
+            yb = target[b].clone()
+            yb[flip, 1] *= -1
+            loss = nn.functional.smooth_l1_loss(net(xb), yb, beta=0.05)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    return GoalOffsetEstimator(net)
