@@ -598,19 +598,23 @@ class TelloEnv(EnvBase):
                "box": [float(v) for v in meas.box[0].tolist()]}
         rule = self.reach_rule
         alt = altitude if altitude is not None else (rule.goal_height or 0.0)
-        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"], alt, frame)
+        out["goal_offset"] = self._goal_offset(in_sight, depth[0], out["box"], alt, frame,
+                                               out["distance"])
         out["reached"] = rule(in_sight=in_sight, distance=out["distance"], angle=out["angle"],
                               box=out["box"], width=self.image_size[1], altitude=alt,
                               goal_offset=out["goal_offset"])
         return out
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
-                     frame=None) -> float | None:
+                     frame=None, distance: float | None = None) -> float | None:
         """The reach rule's goal-point offset estimate (only when the rule uses it): from
-        the arrival head on ``frame`` when there is one, else from the depth map."""
+        the arrival head on ``frame`` when there is one, else from the depth map. The head
+        is asked only within the rule's range (``distance``), where it was trained, and the
+        segment starts at the last step's estimate only if that one was asked too."""
         if self.arrival_head is not None:
             prev, self._prev_offset = self._prev_offset, None
-            if not in_sight or frame is None:
+            if not in_sight or frame is None or (
+                    distance is not None and not distance <= self.reach_rule.max_distance):
                 return None
             cur = np.asarray(self.arrival_head(np.asarray(frame)[None]), float).reshape(-1)[:2]
             self._prev_offset = cur
@@ -639,7 +643,7 @@ class TelloEnv(EnvBase):
             in_sight=in_sight, distance=dist, angle=angle, box=box,
             width=self.image_size[1], altitude=alt,
             goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box, alt,
-                                                               frame))
+                                                               frame, dist))
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],

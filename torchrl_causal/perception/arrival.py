@@ -16,8 +16,8 @@ the goal point, with the height sensor's difference; to the segment of the
 last move, since the simulator judges a pass through its sphere).
 
 :func:`render_offset_views` renders the training data: poses in front of the
-thesis board (0.35 m nearer to 0.65 m farther than the goal point, up to
-0.4 m sideways, +-0.12 m in height, yaw within 20 deg of facing it, roll and
+thesis board (0.42 m nearer to 0.8 m farther than the goal point, up to
+0.6 m sideways, +-0.12 m in height, yaw within 30 deg of facing it, roll and
 pitch within 3 deg), each frame through a
 :class:`~torchrl_causal.perception.video_path.VideoPath` (jitter, H.264) at
 one of the Tello path's stream sizes. ``recipes/train_arrival.py`` trains
@@ -168,6 +168,7 @@ class GoalOffsetEstimator:
 
 
 def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 320)),
+                        ahead=(-0.42, 0.8), lateral=0.6, height=0.12, yaw_deg=30.0,
                         video_path_options: dict | None = None):
     """``n`` frames near the thesis board through the Tello camera path, with labels.
 
@@ -176,6 +177,11 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
         seed: seed of the poses and of the camera path's jitter.
         stream_sizes: the video stream sizes, used in turn (the Tello's 960 x 720 and the
             emulator's default 320 x 240).
+        ahead: ``(low, high)`` range (m) of the offset along the board's normal from the goal
+            point (the goal point is 0.45 m from the board's face: -0.42 is 3 cm from it).
+        lateral: the largest sideways offset (m).
+        height: the largest height offset (m).
+        yaw_deg: the largest yaw off facing the board (deg).
         video_path_options: extra :class:`~torchrl_causal.perception.video_path.VideoPath`
             options.
 
@@ -208,16 +214,16 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
             size = sizes[i % len(sizes)]
             env = envs[size]
             qa = env.ids.qpos_adr
-            ahead, lat = rng.uniform(-0.35, 0.65), rng.uniform(-0.4, 0.4)
-            dz = rng.uniform(-0.12, 0.12)
-            dyaw = rng.uniform(-20, 20)
-            xy = gp[:2] + ahead * normal + lat * side
+            ahead_m, lat = rng.uniform(*ahead), rng.uniform(-lateral, lateral)
+            dz = rng.uniform(-height, height)
+            dyaw = rng.uniform(-yaw_deg, yaw_deg)
+            xy = gp[:2] + ahead_m * normal + lat * side
             env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2] + dz)
             env.data.qpos[qa + 3:qa + 7] = _quat(facing + dyaw, rng.uniform(-3, 3),
                                                  rng.uniform(-3, 3))
             rgb = np.asarray(env._observe(False, False)["pixels"])
             frames.append(crop_resize(paths[size](rgb), INPUT_SIZE).numpy())
-            labels.append((ahead, lat, dz, dyaw))
+            labels.append((ahead_m, lat, dz, dyaw))
     finally:
         for env in envs.values():
             env.close()
