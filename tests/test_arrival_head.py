@@ -29,7 +29,7 @@ def test_views_are_labelled_frames_of_both_stream_sizes(views):
     (x, y), _ = views
     assert x.shape == (240, *INPUT_SIZE, 3) and x.dtype == np.uint8 and y.shape == (240, 4)
     assert (-0.42 <= y[:, 0]).all() and (y[:, 0] <= 0.8).all() and (abs(y[:, 1]) <= 0.6).all()
-    assert (abs(y[:, 2]) <= 0.12).all() and (abs(y[:, 3]) <= 30).all()
+    assert (abs(y[:, 2]) <= 0.2).all() and (abs(y[:, 3]) <= 30).all()
     assert x.std() > 10  # real renders, not blank frames
     again, labels = render_offset_views(4, seed=5)
     np.testing.assert_array_equal(labels, y[:4])  # seeded poses
@@ -72,6 +72,10 @@ def test_segment_distance_sees_a_pass_through_the_sphere():
     assert segment_distance((0.3, 0.0), (-0.1, 0.0)) == pytest.approx(0.0)  # flew through it
     assert segment_distance((0.3, 0.0), (0.25, 0.0), dz=0.1) == pytest.approx(np.hypot(0.25, 0.1))
     assert segment_distance((0.1, 0.1), (0.1, 0.1)) == pytest.approx(np.hypot(0.1, 0.1))
+    # 3-D: a descent from 0.4 m above onto a point 0.35 m short never came near the goal
+    assert segment_distance((0.1, 0.0, 0.4), (0.35, 0.0, 0.0)) > 0.25
+    with pytest.raises(ValueError, match="start and end must both be"):
+        segment_distance((0.1, 0.0, 0.4), (0.35, 0.0))
 
 
 def test_tello_env_arrives_by_the_head():
@@ -107,6 +111,15 @@ def test_tello_env_arrives_by_the_head():
     m = far.measure_frame(np.zeros((720, 960, 3), np.uint8))
     assert not m["reached"] and m["goal_offset"] is None and calls == []
     far.close()
+    # the height sensor alone puts it outside the sphere: the head is not asked either
+    high = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                    reach_rule=ReachRule(max_distance=1.0, max_goal_offset=0.2,
+                                         goal_height=1.0), arrival_head=counting)
+    m = high.measure_frame(np.zeros((720, 960, 3), np.uint8), altitude=1.35)
+    assert not m["reached"] and m["goal_offset"] == pytest.approx(0.35) and calls == []
+    m = high.measure_frame(np.zeros((720, 960, 3), np.uint8), altitude=1.05)
+    assert m["reached"] and m["goal_offset"] == pytest.approx(0.05) and calls == [1]
+    high.close()
     with pytest.raises(ValueError, match="arrival_head needs a reach_rule with max_goal_offset"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  arrival_head=head((0.0, 0.0)))

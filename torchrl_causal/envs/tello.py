@@ -609,18 +609,23 @@ class TelloEnv(EnvBase):
                      frame=None, distance: float | None = None) -> float | None:
         """The reach rule's goal-point offset estimate (only when the rule uses it): from
         the arrival head on ``frame`` when there is one, else from the depth map. The head
-        is asked only within the rule's range (``distance``), where it was trained, and the
-        segment starts at the last step's estimate only if that one was asked too."""
+        is asked only within the rule's range (``distance``) and when the height sensor does
+        not already put the drone outside ``max_goal_offset`` (where it was trained); the
+        3-D segment starts at the last step's estimate only if that one was asked too."""
         if self.arrival_head is not None:
-            prev, self._prev_offset = self._prev_offset, None
-            if not in_sight or frame is None or (
-                    distance is not None and not distance <= self.reach_rule.max_distance):
-                return None
-            cur = np.asarray(self.arrival_head(np.asarray(frame)[None]), float).reshape(-1)[:2]
-            self._prev_offset = cur
             rule = self.reach_rule
-            dz = (rule.goal_height - altitude) if rule.goal_height is not None else 0.0
-            return segment_distance(cur if prev is None else prev, cur, dz)
+            prev, self._prev_offset = self._prev_offset, None
+            dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
+            if not in_sight or frame is None or (
+                    distance is not None and not distance <= rule.max_distance):
+                return None
+            if abs(dz) > rule.max_goal_offset:  # the height sensor alone puts it outside
+                return abs(dz)
+            ahead, lateral = np.asarray(self.arrival_head(np.asarray(frame)[None]),
+                                        float).reshape(-1)[:2]
+            cur = np.array([ahead, lateral, dz])
+            self._prev_offset = cur
+            return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,

@@ -13,11 +13,13 @@ lateral)`` in metres (``ahead`` > 0: farther from the board than the goal
 point). :class:`GoalOffsetEstimator` wraps it with its input size, saves and
 loads it, and gives ``TelloEnv`` its ``goal_offset`` (the 3-D distance to
 the goal point, with the height sensor's difference; to the segment of the
-last move, since the simulator judges a pass through its sphere).
+last move, since the simulator judges a pass through its sphere). The head
+is not asked where the height sensor alone puts the drone outside the
+sphere.
 
 :func:`render_offset_views` renders the training data: poses in front of the
 thesis board (0.42 m nearer to 0.8 m farther than the goal point, up to
-0.6 m sideways, +-0.12 m in height, yaw within 30 deg of facing it, roll and
+0.6 m sideways, +-0.2 m in height, yaw within 30 deg of facing it, roll and
 pitch within 3 deg), each frame through a
 :class:`~torchrl_causal.perception.video_path.VideoPath` (jitter, H.264) at
 one of the Tello path's stream sizes. ``recipes/train_arrival.py`` trains
@@ -93,20 +95,28 @@ def _to_input(frames) -> torch.Tensor:
 
 
 def segment_distance(start, end, dz: float = 0.0) -> float:
-    """Distance from the goal point (the origin) to the segment ``start -> end`` in the
-    board's ``(ahead, lateral)`` plane, with a height difference ``dz`` (m).
+    """Distance from the goal point (the origin) to the segment ``start -> end``: points
+    ``(ahead, lateral)`` with a common height difference ``dz``, or ``(ahead, lateral, dz)``
+    (m).
 
     Example:
         >>> round(segment_distance((0.3, 0.1), (-0.3, 0.1)), 3)  # passed 0.1 m beside it
         0.1
         >>> round(segment_distance((0.3, 0.0), (0.2, 0.0)), 3)  # stopped 0.2 m short
         0.2
+        >>> round(segment_distance((0.1, 0.0, 0.4), (0.35, 0.0, 0.0)), 3)  # came down far off
+        0.297
     """
     a, b = np.asarray(start, float), np.asarray(end, float)
+    if a.shape != b.shape or a.shape not in ((2,), (3,)):
+        raise ValueError(f"segment_distance: start and end must both be (ahead, lateral) or "
+                         f"(ahead, lateral, dz), got {a.shape} and {b.shape}")
+    if a.shape == (2,):
+        a, b = np.append(a, dz), np.append(b, dz)
     d = b - a
     t = 0.0 if not d.any() else float(np.clip(-(a @ d) / (d @ d), 0.0, 1.0))
     p = a + t * d
-    return float(math.sqrt(p @ p + dz * dz))
+    return float(math.sqrt(p @ p))
 
 
 class GoalOffsetEstimator:
@@ -168,7 +178,7 @@ class GoalOffsetEstimator:
 
 
 def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 320)),
-                        ahead=(-0.42, 0.8), lateral=0.6, height=0.12, yaw_deg=30.0,
+                        ahead=(-0.42, 0.8), lateral=0.6, height=0.2, yaw_deg=30.0,
                         video_path_options: dict | None = None):
     """``n`` frames near the thesis board through the Tello camera path, with labels.
 
@@ -180,7 +190,8 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
         ahead: ``(low, high)`` range (m) of the offset along the board's normal from the goal
             point (the goal point is 0.45 m from the board's face: -0.42 is 3 cm from it).
         lateral: the largest sideways offset (m).
-        height: the largest height offset (m).
+        height: the largest height offset (m; ``TelloEnv`` asks the head only when the
+            height sensor puts the drone within the rule's ``max_goal_offset``, 0.2 m).
         yaw_deg: the largest yaw off facing the board (deg).
         video_path_options: extra :class:`~torchrl_causal.perception.video_path.VideoPath`
             options.
