@@ -22,6 +22,10 @@ import numpy as np
 import torch
 
 
+def _share(x: np.ndarray) -> float | None:
+    return round(float(x.mean()), 3) if len(x) else None  # None: no such frames
+
+
 def evaluate(est, frames, labels, thresholds=(0.16, 0.18, 0.2, 0.22)) -> dict:
     """Errors of the offsets, and where the rule "estimated 3-D distance <= t" fires
     inside and outside the 0.2 m goal sphere (the height difference as the sensor gives)."""
@@ -34,8 +38,8 @@ def evaluate(est, frames, labels, thresholds=(0.16, 0.18, 0.2, 0.22)) -> dict:
     rows = []
     for t in thresholds:
         fire = est_d <= t
-        rows.append({"threshold_m": t, "fire_inside": round(float(fire[inside].mean()), 3),
-                     "fire_outside": round(float(fire[~inside].mean()), 3),
+        rows.append({"threshold_m": t, "fire_inside": _share(fire[inside]),
+                     "fire_outside": _share(fire[~inside]),
                      "agreement": round(float((fire == inside).mean()), 3)})
     return {"n": int(len(labels)), "n_inside": int(inside.sum()),
             "mae_ahead_m": round(float(err[:, 0].mean()), 4),
@@ -45,8 +49,26 @@ def evaluate(est, frames, labels, thresholds=(0.16, 0.18, 0.2, 0.22)) -> dict:
             "rule": rows}
 
 
+#: The near share's poses: the decision region around the 0.2 m goal sphere.
+NEAR = {"ahead": (-0.35, 0.35), "lateral": 0.35}
+
+
+def render_mixture(n: int, seed: int, near_share: float):
+    """``n`` frames: ``near_share`` of them near the goal point (:data:`NEAR`), the rest
+    over the whole range the head is asked in (``render_offset_views``' defaults)."""
+    from torchrl_causal.perception.arrival import render_offset_views
+
+    n_near = int(round(n * near_share))
+    parts = []
+    if n_near:
+        parts.append(render_offset_views(n_near, seed=seed, **NEAR))
+    if n - n_near:
+        parts.append(render_offset_views(n - n_near, seed=seed + 500))
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+
+
 def main(argv=None) -> dict:
-    from torchrl_causal.perception.arrival import render_offset_views, train_goal_offset
+    from torchrl_causal.perception.arrival import train_goal_offset
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True, type=Path, help="weights file to write (.pt)")
@@ -54,25 +76,31 @@ def main(argv=None) -> dict:
     p.add_argument("--test", type=int, default=600, help="test frames (another seed)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--seed", type=int, default=1, help="seed of the training frames")
+    p.add_argument("--near-share", type=float, default=0.5,
+                   help="share of the frames drawn near the goal point (ahead -0.35..0.35 m, "
+                        "up to 0.35 m sideways), the rest over the whole range (default 0.5)")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     for name in ("train", "test", "epochs"):
         if getattr(a, name) < 1:
             raise ValueError(f"Invalid option --{name}={getattr(a, name)}: expected >= 1")
+    if not 0.0 <= a.near_share <= 1.0:
+        raise ValueError(f"Invalid option --near-share={a.near_share}: expected 0-1")
     if a.out.suffix != ".pt":
         raise ValueError(f"Invalid option --out={a.out}: expected a .pt file")
     if a.threads:
         torch.set_num_threads(a.threads)
     t0 = time.time()
     print(f"rendering {a.train} + {a.test} frames ...", file=sys.stderr, flush=True)
-    xtr, ytr = render_offset_views(a.train, seed=a.seed)
-    xte, yte = render_offset_views(a.test, seed=a.seed + 1000)
+    xtr, ytr = render_mixture(a.train, a.seed, a.near_share)
+    xte, yte = render_mixture(a.test, a.seed + 1000, a.near_share)
     t1 = time.time()
     est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, progress=not a.no_progress)
     t2 = time.time()
     figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte),
                "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
+               "near_share": a.near_share, "near": NEAR,
                "render_s": round(t1 - t0, 1), "train_s": round(t2 - t1, 1),
                "command": "python recipes/train_arrival.py " + " ".join(argv or sys.argv[1:])}
     est.meta = figures

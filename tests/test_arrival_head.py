@@ -126,3 +126,22 @@ def test_tello_env_arrives_by_the_head():
     with pytest.raises(ValueError, match="arrival_head must be a callable"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  reach_rule=rule, arrival_head="arrival.pt")
+
+
+def test_train_arrival_recipe_writes_measured_weights(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    import train_arrival
+
+    out = tmp_path / "head.pt"
+    figures = train_arrival.main(["--out", str(out), "--train", "8", "--test", "6",
+                                  "--epochs", "1", "--no-progress"])
+    assert figures["test"]["n"] == 6 and len(figures["test"]["rule"]) == 4
+    assert GoalOffsetEstimator.load(out).meta["near_share"] == 0.5
+    for argv, message in ((["--near-share", "2"], "--near-share=2.0"),
+                          (["--epochs", "0"], "--epochs=0"),
+                          (["--out", str(tmp_path / "head.bin")], "expected a .pt file")):
+        with pytest.raises(ValueError, match=message):
+            train_arrival.main(["--out", str(out), *argv])
