@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights arrival-weights clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,14 @@ generalist: venv
 THESIS_RUN ?= outputs/make_train
 ship-thesis: venv
 	$(PY) recipes/ship_policy.py $(THESIS_RUN) thesis --command "make train"
+
+# make arrival-weights: the shipped arrival head (about 11 minutes on one core): 6,000 frames
+# near the thesis board through the Tello camera path, half of them near the goal sphere, 30
+# epochs; its test figures go into the weights and arrival.json (docs/tello.rst, "A learned
+# arrival head"; fly_tello.py --arrival-head shipped --reach-offset 0.2)
+arrival-weights: venv
+	$(PY) recipes/train_arrival.py --out torchrl_causal/perception/weights/arrival.pt \
+	    --train 6000 --test 600 --epochs 30 --threads 1 --no-progress
 
 # make depth-weights: the shipped MonoDepth (about 1.5 hours on one core): the base network on
 # plain renders, then a log-BerHu fine-tune on frames through the Tello camera path (video

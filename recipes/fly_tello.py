@@ -114,9 +114,13 @@ def parse_args(argv=None):
                    help="the goal point in front of the board's face (m) for --reach-offset "
                         "(default: the emulated layout's; 0.45 on a real drone)")
     p.add_argument("--arrival-head", default=None,
-                   help="weights of the learned arrival head (recipes/train_arrival.py): the "
-                        "--reach-offset distance is then read from the camera frame by it "
-                        "instead of the depth map's board plane (needs --reach-offset)")
+                   help="the learned arrival head: 'shipped' (make arrival-weights) or a "
+                        "weights file of recipes/train_arrival.py; the --reach-offset distance "
+                        "is then read from the camera frame by it instead of the depth map's "
+                        "board plane (needs --reach-offset; trained on the thesis board)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="emulator: the seed of the scene and its per-episode noise draws "
+                        "(default: the run's seed); another seed flies other episodes")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
     a = p.parse_args(argv)
@@ -135,6 +139,9 @@ def parse_args(argv=None):
         p.error(f"--video-size {a.video_size}: a Tello streams 960x720 (4:3); the emulator "
                 "sends that or a 4:3 downscale of even height 120-720 (e.g. 720x960, "
                 "480x640, 240x320)")
+    if a.host is not None and a.seed is not None:
+        p.error(f"--seed {a.seed}: a real flight has no seeded noise; the option is the "
+                "emulator's")
     if a.host is not None and a.video_size != p.get_default("video_size"):
         p.error(f"--video-size {a.video_size}: a real Tello streams 960x720; the option is "
                 "the emulator's")
@@ -161,6 +168,10 @@ def parse_args(argv=None):
         if a.reach_offset is None:
             p.error(f"--arrival-head {a.arrival_head!r} needs --reach-offset (e.g. 0.2): the "
                     "head estimates the distance to the goal point that it bounds")
+        if a.arrival_head == "shipped":
+            from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS
+
+            a.arrival_head = str(DEFAULT_WEIGHTS)
         if not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
     if a.no_height_check:
@@ -396,7 +407,9 @@ def main(argv=None) -> dict:
         summary["layout"] = scene
         layout_opts = train_recipe.ru.SCENES[scene]
         noise = NOISE if args.noise else {}
-        with TelloEmulator(env_options=dict(layout_opts, seed=cfg.seed, **noise),
+        seed = cfg.seed if args.seed is None else args.seed
+        summary["seed"] = int(seed)
+        with TelloEmulator(env_options=dict(layout_opts, seed=seed, **noise),
                            video_size=args.video_hw, time_scale=args.time_scale,
                            battery_drain_per_min=0.0) as emu:
             tello = emu.client()

@@ -6,8 +6,9 @@ measures it on frames of another seed and writes the weights with the figures::
 
     python recipes/train_arrival.py --out outputs/arrival/arrival.pt --train 4000 --test 600
 
-Prints one JSON object (the test figures); ``fly_tello.py --arrival-head PATH
---reach-offset 0.2`` flies with it.
+Prints one JSON object (the test figures), also stored in the weights and beside them
+(``<out>.json``); ``fly_tello.py --arrival-head PATH --reach-offset 0.2`` flies with it
+(``make arrival-weights`` writes the shipped head, ``--arrival-head shipped``).
 """
 
 from __future__ import annotations
@@ -105,6 +106,7 @@ def main(argv=None) -> dict:
                "command": "python recipes/train_arrival.py " + " ".join(argv or sys.argv[1:])}
     est.meta = figures
     est.save(a.out)
+    a.out.with_suffix(".json").write_text(json.dumps(figures, indent=1) + "\n")  # sidecar
     print(json.dumps(figures))
     return figures
 

@@ -123,6 +123,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--reach-offset", "0"], "ReachRule.max_goal_offset"),
     (["--reach-offset", "0.2", "--board-width", "-1"], "ReachRule.board_width"),
     (["--arrival-head", "x.pt"], "--arrival-head 'x.pt' needs --reach-offset"),
+    (["--host", "192.168.10.1", "--seed", "3", "--dry-run"], "the option is the emulator's"),
     (["--arrival-head", "missing.pt", "--reach-offset", "0.2"], "'missing.pt': no such file"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):

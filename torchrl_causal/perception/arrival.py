@@ -48,6 +48,8 @@ _FORMAT = "torchrl_causal.GoalOffsetEstimator"
 _VERSION = 1
 #: (height, width) the network reads; frames are centre-cropped and resized to it.
 INPUT_SIZE = (96, 128)
+#: The shipped head (``make arrival-weights``), with its figures in ``arrival.json``.
+DEFAULT_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival.pt"
 
 
 class GoalOffsetNet(nn.Module):
@@ -146,22 +148,23 @@ class GoalOffsetEstimator:
         return self.net(_to_input(frames))
 
     def save(self, path) -> Path:
-        """Writes the weights, the network's width and :attr:`meta` to ``path``."""
+        """Writes the weights (float16), the network's width and :attr:`meta` to ``path``."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        state = {k: v.half() for k, v in self.net.state_dict().items()}
         torch.save({"format": _FORMAT, "version": _VERSION, "width": self.net.width,
-                    "state_dict": self.net.state_dict(), "meta": self.meta}, path)
+                    "state_dict": state, "meta": self.meta}, path)
         return path
 
     @classmethod
-    def load(cls, path) -> GoalOffsetEstimator:
-        """Loads weights written by :meth:`save`.
+    def load(cls, path=None) -> GoalOffsetEstimator:
+        """Loads weights written by :meth:`save` (None: the shipped :data:`DEFAULT_WEIGHTS`).
 
         Raises:
             FileNotFoundError: no such file (naming it and the command that trains one).
             RuntimeError: a file of another format.
         """
-        path = Path(path)
+        path = DEFAULT_WEIGHTS if path is None else Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"No arrival head at {path}; train one with "
                                     "python recipes/train_arrival.py --out PATH")
@@ -173,7 +176,7 @@ class GoalOffsetEstimator:
             raise RuntimeError(f"{path} is not an arrival head (format "
                                f"{blob.get('format') if isinstance(blob, dict) else None!r})")
         net = GoalOffsetNet(int(blob["width"]))
-        net.load_state_dict(blob["state_dict"])
+        net.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
         return cls(net, blob.get("meta"))
 
 
