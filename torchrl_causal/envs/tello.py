@@ -344,7 +344,7 @@ class TelloEnv(EnvBase):
         self.max_depth = float(max_depth)
         self.reach_rule = reach_rule
         self.arrival_head = arrival_head
-        self._prev_offset = None  # the arrival head's last (ahead, lateral), for the segment
+        self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
         self.max_height = float(max_height)
