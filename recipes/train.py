@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -379,6 +380,10 @@ def train(cfg: DictConfig) -> dict:
         print(f"Stopped after {summary['frames']} frames (checkpoint.stop_after_frames); resume "
               f"with output_dir={out} checkpoint.resume=true")
         return summary
+    if not cfg.buffer.scratch_dir and not loop.config.keep_final_buffer:
+        # a finished run's checkpoint keeps no buffer: its memmap scratch files (up to
+        # ~1 GB) go, so a grid of finished runs holds records, not buffers
+        shutil.rmtree(paths["buffer"].parent / "buffer_storage", ignore_errors=True)
     if teacher:
         summary["teacher"] = {
             "rounds": len(teacher), "frames": int(sum(r["frames"] for r in teacher)),

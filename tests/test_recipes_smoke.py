@@ -118,7 +118,8 @@ def test_resume_continues_exactly(tmp_path):
     full, cut = tmp_path / "full", tmp_path / "cut"
     args = ["--config-name", "cbn_v2", *TINY, "seed=3", "collector.total_frames=280",
             "checkpoint.interval_frames=90", "eval.interval_frames=100",
-            "env.eval_layouts=[thesis]", "outputs.draw_cbns=false"]
+            "env.eval_layouts=[thesis]", "outputs.draw_cbns=false",
+            "buffer.memmap_above=100"]  # the replay memory on disk, as in full-size runs
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), HYDRA_FULL_ERROR="1")
     procs = [
         subprocess.Popen([sys.executable, str(TRAIN), *args, f"output_dir={full}"],
@@ -134,12 +135,15 @@ def test_resume_continues_exactly(tmp_path):
     stopped = pd.read_csv(cut / "episodes.csv")
     assert 0 < len(stopped) < len(pd.read_csv(full / "episodes.csv"))
     assert not (cut / "summary.json").exists()
+    assert (cut / "checkpoints" / "buffer_storage").is_dir()  # the memmap a resume reuses
     _run([*args, f"output_dir={cut}", "checkpoint.resume=true"])
 
     for name in ("episodes.csv", "relearns.csv", "eval.csv"):
         a, b = pd.read_csv(full / name), pd.read_csv(cut / name)
         pd.testing.assert_frame_equal(a, b, obj=name)
     assert len(pd.read_csv(full / "relearns.csv")) >= 2
+    for run in (full, cut):  # finished: the memmap scratch files are gone
+        assert not (run / "checkpoints" / "buffer_storage").exists()
     ma, mb = torch.load(full / "model.pt"), torch.load(cut / "model.pt")
     assert ma.keys() == mb.keys()
     for k in ma:
