@@ -164,8 +164,7 @@ def bench_flight(run: Path, episodes: int, noise: bool, seed: int) -> None:
 
     from torchrl_causal.training import evaluate
 
-    extra = (["env.options.position_noise_std=0.05", "env.options.yaw_noise_std_deg=3.0"]
-             if noise else [])
+    extra = ["env.noise=tello"] if noise else []
     for perception in ("sim", "rgb"):
         policy, env, cfg = recipe.load_policy(
             run, overrides=[f"features.options.perception={perception}", *extra])

@@ -47,6 +47,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results import wilson  # noqa: E402
 
+from torchrl_causal.envs.control import TELLO_MOVE_NOISE as NOISE  # noqa: E402
+
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
                "success_sim", "closest_sim_m", "land_offset_sim_m", "battery"]
@@ -227,7 +229,6 @@ def confirm_real_flight(host: str, yes: bool, ask=input) -> None:
         raise SystemExit("not confirmed: nothing was flown")
 
 
-NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
 #: ``--perception`` choices besides ``module:factory`` (the ``sim*`` ones: emulator only).
 PERCEPTIONS = ("rgb", "sim", "sim-depth", "sim-detector")
 #: ``--*-weights`` options: the model they replace and the perceptions where it is the RGB one.
@@ -448,7 +449,7 @@ def main(argv=None) -> dict:
     if args.compare_sim:
         from torchrl_causal.training import evaluate
 
-        noise = [f"env.options.{k}={v}" for k, v in NOISE.items()] if args.noise else []
+        noise = ["env.noise=tello"] if args.noise else []
         scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
         res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + int(cfg.seed) * 1009,

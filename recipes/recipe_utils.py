@@ -30,6 +30,7 @@ from typing import Any, Mapping
 
 import torch
 
+from torchrl_causal.envs.control import TELLO_MOVE_NOISE
 from torchrl_causal.envs.rewards import REWARDS  # ``env.reward`` names: the env's own
 from torchrl_causal.training import RUN_FILES
 
@@ -109,6 +110,9 @@ SCENES = {
     # training uses 0), for eval.select_layout -- selection never sees held-out layouts
     "val": {"layout": "random", "split": "train", "layout_seed": 1},
 }
+#: ``env.noise`` presets -> DroneNavEnv options (``tello``: the emulated Tello's move
+#: noise, :data:`torchrl_causal.envs.control.TELLO_MOVE_NOISE`).
+NOISE_PRESETS = {"none": {}, "tello": TELLO_MOVE_NOISE}
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
 #: ``preset`` names (config group ``recipes/config/preset``).
 PRESETS = ("default", "thesis")
@@ -221,6 +225,13 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
         _require(fpb % n_envs == 0, "collector.frames_per_batch", fpb,
                  f"a multiple of env.num_envs={n_envs} (each batch steps every env alike), "
                  f"e.g. collector.frames_per_batch={n_envs}")
+    noise = _get(cfg, "env.noise", "none")
+    _require(noise in NOISE_PRESETS, "env.noise", noise, f"one of {sorted(NOISE_PRESETS)}")
+    both = sorted(set(NOISE_PRESETS[noise]) & set(_get(cfg, "env.options") or {}))
+    if both:
+        raise ValueError(f"Invalid option env.noise={noise!r}: the preset sets "
+                         f"env.options.{both[0]} itself; drop env.options.{both[0]} or use "
+                         "env.noise=none.")
     overlap = _get(cfg, "collector.overlap", False)
     _require(isinstance(overlap, bool), "collector.overlap", overlap,
              "true (collect beside the optimisation, in a worker thread) or false")

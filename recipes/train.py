@@ -65,7 +65,8 @@ def build_env(cfg: DictConfig, variant: ru.Variant, scene: str, device: str, num
     make = functools.partial(
         DroneNavEnv, **ru.SCENES[scene], image_size=cfg.env.image_size,
         max_steps=cfg.env.max_steps, reward=cfg.env.reward, seed=cfg.seed, device=device,
-        **OmegaConf.to_container(cfg.env.options, resolve=True))
+        **OmegaConf.to_container(cfg.env.options, resolve=True),
+        **ru.NOISE_PRESETS[cfg.env.get("noise", "none")])
     if num_envs == 1:
         env = make()
     else:

@@ -76,11 +76,15 @@ def test_every_variant_config_is_valid(name, tmp_path):
         ("loss.updates_per_frame=0", "loss.updates_per_frame=0"),
         ("env.num_envs=3", "collector.frames_per_batch=1"),
         ("env.parallel=maybe", "env.parallel='maybe'"),
+        ("env.noise=windy", "env.noise='windy'"),
+        ("+env.options.yaw_noise_std_deg=1.0", "env.options.yaw_noise_std_deg"),
     ],
 )
 def test_bad_input_fails_before_training(override, needle, tmp_path):
     out = tmp_path / "run"
-    cfg = _cfg("cbn_v2", [f"output_dir={out}", override])
+    # the noise preset beside an option it sets itself is a clash
+    extra = ["env.noise=tello"] if override.startswith("+env.options") else []
+    cfg = _cfg("cbn_v2", [f"output_dir={out}", override, *extra])
     with pytest.raises(ValueError, match="Invalid option") as err:
         train.train(cfg)
     assert needle in str(err.value)
@@ -151,3 +155,15 @@ def test_reproduce_plan_covers_protocol(tmp_path):
 def test_unknown_preset_is_named():
     with pytest.raises(Exception, match="bogus"):
         _cfg("cbn_v2", ["preset=bogus"])
+
+
+def test_tello_noise_preset_reaches_the_env():
+    """``env.noise=tello`` trains and evaluates under the emulated Tello's move noise."""
+    from torchrl_causal.envs import TELLO_MOVE_NOISE
+
+    for noise, expected in (("none", (0.0, 0.0)), ("tello", (0.05, 3.0))):
+        cfg = _cfg("dqn_image", [f"env.noise={noise}"])
+        env = train.build_env(cfg, ru.VARIANTS["dqn_image"], "thesis", "cpu")
+        assert (env.position_noise_std, env.yaw_noise_std_deg) == expected
+        env.close()
+    assert TELLO_MOVE_NOISE == {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}

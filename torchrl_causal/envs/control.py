@@ -129,6 +129,13 @@ class _Executor:
         return self.data.ncon > 0
 
 
+#: The emulated Tello's move imperfections, as :class:`~torchrl_causal.envs.DroneNavEnv`
+#: options: 0.05 m of Gaussian noise per moved axis and 3 deg per turn, drawn once per
+#: move (``fly_tello.py --noise``, the emulator's ``env_options`` and the training
+#: recipe's ``env.noise=tello``).
+TELLO_MOVE_NOISE = {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
+
+
 class KinematicExecutor(_Executor):
     """Sets the new pose directly, sweeping the straight path for collisions.
 
