@@ -120,6 +120,18 @@ def test_tello_env_arrives_by_the_head():
     m = high.measure_frame(np.zeros((720, 960, 3), np.uint8), altitude=1.05)
     assert m["reached"] and m["goal_offset"] == pytest.approx(0.05) and calls == [1]
     high.close()
+    # a board the detector loses right after a sighting within range is held one step:
+    # the head is asked on that frame, the segment runs on from the last estimate; a
+    # second frame without a detection, or a loss with no sighting before, asks nothing
+    seq = iter([(0.3, 0.0), (0.1, 0.0), (0.0, 0.0)])
+    held = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
+    frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
+    assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # never seen
+    assert held._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.3)
+    assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
+    assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # two in a row
+    held.close()
     with pytest.raises(ValueError, match="arrival_head needs a reach_rule with max_goal_offset"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  arrival_head=head((0.0, 0.0)))

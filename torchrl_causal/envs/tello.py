@@ -345,6 +345,7 @@ class TelloEnv(EnvBase):
         self.reach_rule = reach_rule
         self.arrival_head = arrival_head
         self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
+        self._prev_seen = False  # that estimate came with the board in the detector's sight
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
         self.max_height = float(max_height)
@@ -611,20 +612,26 @@ class TelloEnv(EnvBase):
         the arrival head on ``frame`` when there is one, else from the depth map. The head
         is asked only within the rule's range (``distance``) and when the height sensor does
         not already put the drone outside ``max_goal_offset`` (where it was trained); the
-        3-D segment starts at the last step's estimate only if that one was asked too."""
+        3-D segment starts at the last step's estimate only if that one was asked too.
+
+        A board the detector loses right after the head was asked with it in sight (at
+        0.3-0.4 m it fills the view and the detector's recall falls) is still the board
+        in front: the head is asked for that one step more, never for two in a row
+        without a detection."""
         if self.arrival_head is not None:
             rule = self.reach_rule
             prev, self._prev_offset = self._prev_offset, None
+            held, self._prev_seen = prev is not None and self._prev_seen, False
             dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
-            if not in_sight or frame is None or (
-                    distance is not None and not distance <= rule.max_distance):
+            if frame is None or (not in_sight and not held) or (
+                    in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
             if abs(dz) > rule.max_goal_offset:  # the height sensor alone puts it outside
                 return abs(dz)
             ahead, lateral = np.asarray(self.arrival_head(np.asarray(frame)[None]),
                                         float).reshape(-1)[:2]
             cur = np.array([ahead, lateral, dz])
-            self._prev_offset = cur
+            self._prev_offset, self._prev_seen = cur, in_sight
             return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
@@ -644,11 +651,14 @@ class TelloEnv(EnvBase):
         alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
         bat = float(st.get("bat", 0.0)) if st else 0.0
         box = meas.box[0].tolist()
-        reached = not crashed and self.reach_rule(
-            in_sight=in_sight, distance=dist, angle=angle, box=box,
-            width=self.image_size[1], altitude=alt,
-            goal_offset=None if crashed else self._goal_offset(in_sight, depth[0], box, alt,
-                                                               frame, dist))
+        offset = None if crashed else self._goal_offset(in_sight, depth[0], box, alt, frame,
+                                                        dist)
+        if not in_sight and offset is not None:  # the arrival head held a board just lost
+            reached = not crashed and offset <= self.reach_rule.max_goal_offset
+        else:
+            reached = not crashed and self.reach_rule(
+                in_sight=in_sight, distance=dist, angle=angle, box=box,
+                width=self.image_size[1], altitude=alt, goal_offset=offset)
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
