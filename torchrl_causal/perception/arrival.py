@@ -56,6 +56,9 @@ class GoalOffsetNet(nn.Module):
     """Four stride-2 convolutions and two linear layers: uint8-range RGB ``[B, 3, 96, 128]``
     (scaled to 0-1) -> ``[B, 2]`` offsets (m). The head keeps the feature map's layout
     (no global pooling): where the board's marks are in the image is the sideways offset.
+    With ``outputs=3`` a third output is the yaw off the board's normal (rad), an
+    auxiliary target (:func:`train_goal_offset`'s ``yaw_weight``) that makes the network
+    tell a turned camera from a shifted one.
 
     Example:
         >>> import torch
@@ -63,19 +66,22 @@ class GoalOffsetNet(nn.Module):
         torch.Size([1, 2])
     """
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, outputs: int = 2):
         super().__init__()
         if not isinstance(width, int) or width < 4:
             raise ValueError(f"GoalOffsetNet: width must be an int >= 4, got {width!r}")
+        if outputs not in (2, 3):
+            raise ValueError(f"GoalOffsetNet: outputs must be 2 (ahead, lateral) or 3 (+ yaw), "
+                             f"got {outputs!r}")
         w = width
-        self.width = w
+        self.width, self.outputs = w, outputs
         self.features = nn.Sequential(
             nn.Conv2d(3, w, 5, 2, 2), nn.ReLU(), nn.Conv2d(w, 2 * w, 3, 2, 1), nn.ReLU(),
             nn.Conv2d(2 * w, 4 * w, 3, 2, 1), nn.ReLU(), nn.Conv2d(4 * w, 4 * w, 3, 2, 1),
             nn.ReLU(), nn.Flatten())
         h, wd = INPUT_SIZE
         self.head = nn.Sequential(nn.Linear(4 * w * (h // 16) * (wd // 16), 64), nn.ReLU(),
-                                  nn.Linear(64, 2))
+                                  nn.Linear(64, outputs))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(x))
@@ -145,7 +151,7 @@ class GoalOffsetEstimator:
     @torch.no_grad()
     def __call__(self, frames) -> torch.Tensor:
         """``[B, 2]`` offsets (m) of uint8 RGB frames of any 4:3-croppable size."""
-        return self.net(_to_input(frames))
+        return self.net(_to_input(frames))[:, :2]
 
     def save(self, path) -> Path:
         """Writes the weights (float16), the network's width and :attr:`meta` to ``path``."""
@@ -153,7 +159,7 @@ class GoalOffsetEstimator:
         path.parent.mkdir(parents=True, exist_ok=True)
         state = {k: v.half() for k, v in self.net.state_dict().items()}
         torch.save({"format": _FORMAT, "version": _VERSION, "width": self.net.width,
-                    "state_dict": state, "meta": self.meta}, path)
+                    "outputs": self.net.outputs, "state_dict": state, "meta": self.meta}, path)
         return path
 
     @classmethod
@@ -175,7 +181,7 @@ class GoalOffsetEstimator:
         if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
             raise RuntimeError(f"{path} is not an arrival head (format "
                                f"{blob.get('format') if isinstance(blob, dict) else None!r})")
-        net = GoalOffsetNet(int(blob["width"]))
+        net = GoalOffsetNet(int(blob["width"]), int(blob.get("outputs", 2)))
         net.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
         return cls(net, blob.get("meta"))
 
@@ -247,10 +253,12 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
 
 
 def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width: int = 16,
-                      lr: float = 1e-3, batch_size: int = 64, progress: bool = False
-                      ) -> GoalOffsetEstimator:
+                      lr: float = 1e-3, batch_size: int = 64, yaw_weight: float = 0.0,
+                      progress: bool = False) -> GoalOffsetEstimator:
     """Trains a :class:`GoalOffsetNet` on :func:`render_offset_views`' output (smooth-L1 on
     ``(ahead, lateral)``, Adam, horizontal flips with the lateral sign flipped).
+    ``yaw_weight > 0`` adds the yaw off the board's normal (``labels[:, 3]``, deg; in rad,
+    its sign flipped with the frame) as a third output, its smooth-L1 weighted so.
 
     Raises:
         ValueError: frames and labels of other shapes or counts, or a bad option.
@@ -262,15 +270,20 @@ def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width:
                          f"{x.dtype} {tuple(x.shape)}")
     if y.ndim != 2 or y.shape[0] != x.shape[0] or y.shape[1] < 2:
         raise ValueError(f"labels must be [N, >=2] with N = {x.shape[0]}, got {tuple(y.shape)}")
+    if not (isinstance(yaw_weight, (int, float)) and yaw_weight >= 0):
+        raise ValueError(f"yaw_weight must be a number >= 0, got {yaw_weight!r}")
+    if yaw_weight > 0 and y.shape[1] < 4:
+        raise ValueError(f"yaw_weight={yaw_weight} needs labels [N, 4] (ahead, lateral, dz, "
+                         f"yaw), got {tuple(y.shape)}")
     for name, v in (("epochs", epochs), ("batch_size", batch_size)):
         if not isinstance(v, int) or v < 1:
             raise ValueError(f"{name} must be an int >= 1, got {v!r}")
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    net = GoalOffsetNet(width)
+    net = GoalOffsetNet(width, 3 if yaw_weight > 0 else 2)
     opt = torch.optim.Adam(net.parameters(), lr)
     xf = x.permute(0, 3, 1, 2).float() / 255.0
-    target = y[:, :2]
+    target = y[:, :2] if yaw_weight == 0 else torch.cat([y[:, :2], torch.deg2rad(y[:, 3:4])], 1)
     from tqdm.auto import tqdm
 
     for _ in tqdm(range(epochs), desc="arrival head", disable=not progress):
@@ -281,8 +294,12 @@ def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width:
             flip = torch.rand(len(b), generator=gen) < 0.5
             xb = torch.where(flip[:, None, None, None], xf[b].flip(-1), xf[b])
             yb = target[b].clone()
-            yb[flip, 1] *= -1
-            loss = nn.functional.smooth_l1_loss(net(xb), yb, beta=0.05)
+            yb[flip, 1:] *= -1  # a mirrored view: lateral (and yaw) change sign
+            out = net(xb)
+            loss = nn.functional.smooth_l1_loss(out[:, :2], yb[:, :2], beta=0.05)
+            if yaw_weight > 0:
+                loss = loss + yaw_weight * nn.functional.smooth_l1_loss(out[:, 2], yb[:, 2],
+                                                                        beta=0.05)
             opt.zero_grad()
             loss.backward()
             opt.step()
