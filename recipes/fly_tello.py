@@ -115,11 +115,15 @@ def parse_args(argv=None):
     p.add_argument("--goal-standoff", type=float, default=None,
                    help="the goal point in front of the board's face (m) for --reach-offset "
                         "(default: the emulated layout's; 0.45 on a real drone)")
-    p.add_argument("--arrival-head", default=None,
+    p.add_argument("--arrival-head", default="auto",
                    help="the learned arrival head: 'shipped' (make arrival-weights) or a "
                         "weights file of recipes/train_arrival.py; the --reach-offset distance "
                         "is then read from the camera frame by it instead of the depth map's "
-                        "board plane (needs --reach-offset; trained on the thesis board)")
+                        "board plane (needs --reach-offset; trained on the thesis board). "
+                        "'auto' (default): the shipped head with --reach-offset "
+                        f"{HEAD_REACH_OFFSET} where it was measured -- RGB perception and the "
+                        "1.0 m thesis board (the thesis scene, or a real drone with the field "
+                        "guide's printed board) -- else none; 'none': the depth map's rule")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -166,6 +170,12 @@ def parse_args(argv=None):
                     f"got --perception {a.perception!r}")
         if not Path(path).is_file():
             p.error(f"{flag} {path!r}: no such file")
+    if a.arrival_head == "auto":  # where the head was trained and flown (docs/tello.rst)
+        a.arrival_head = "shipped" if head_applies(a) else None
+        if a.arrival_head is not None and a.reach_offset is None:
+            a.reach_offset = HEAD_REACH_OFFSET
+    elif a.arrival_head == "none":
+        a.arrival_head = None
     if a.arrival_head is not None:
         if a.reach_offset is None:
             p.error(f"--arrival-head {a.arrival_head!r} needs --reach-offset (e.g. 0.2): the "
@@ -186,6 +196,27 @@ def parse_args(argv=None):
         p.error(f"--perception {a.perception} exists only in the emulator: a real drone needs "
                 "RGB-only perception (--perception rgb)")
     return a
+
+
+#: ``--reach-offset`` of ``--arrival-head auto``: one 90th-percentile range error of the
+#: shipped head inside the goal sphere's 0.2 m (docs/tello.rst, "A learned arrival head").
+HEAD_REACH_OFFSET = 0.15
+
+
+def head_applies(args) -> bool:
+    """Whether ``--arrival-head auto`` flies the shipped head: RGB perception (the head
+    replaces MonoDepth's reading of a board that fills the view) and the 1.0 x 0.8 m thesis
+    board it was trained on -- the emulated thesis scene, or a real drone with the field
+    guide's printed board (``--board-width`` unset or 1.0)."""
+    if args.perception != "rgb" or args.board_width not in (None, 1.0):
+        return False
+    if args.host is not None:
+        return True
+    if args.layout is not None:
+        return args.layout == "thesis"
+    from omegaconf import OmegaConf
+
+    return OmegaConf.load(Path(args.run) / "config.yaml").env.layout == "thesis"
 
 
 def reach_rule(args, goal_height=None, layout=None, depth=None):

@@ -139,12 +139,36 @@ def test_the_reach_rule_options_build_the_rule():
     assert (rule.max_distance, rule.max_height_offset, rule.full_width) == (0.45, 0.12, True)
     assert rule.goal_height == 1.0  # the emulated layout's height comes per episode
     assert fly_tello.reach_rule(args, goal_height=1.3).goal_height == 1.3
-    # the defaults: 0.45 m and the height sensor within 0.12 m; --no-height-check: the old form
-    default = fly_tello.parse_args(["--run", str(POLICY)]).reach_rule
+    # without the head: 0.45 m and the height sensor within 0.12 m; --no-height-check: the
+    # old form
+    default = fly_tello.parse_args(["--run", str(POLICY), "--arrival-head", "none"]).reach_rule
     assert (default.max_distance, default.max_height_offset, default.goal_height) == \
-        (0.45, 0.12, 1.0)
-    plain = fly_tello.parse_args(["--run", str(POLICY), "--no-height-check"]).reach_rule
+        (0.45, 0.12, 1.0) and default.max_goal_offset is None
+    plain = fly_tello.parse_args(["--run", str(POLICY), "--arrival-head", "none",
+                                  "--no-height-check"]).reach_rule
     assert plain.goal_height is None
+
+
+def test_the_arrival_head_is_the_default_where_it_was_measured():
+    """--arrival-head auto: the shipped head (offset <= 0.15 m, range bound 1.0 m) for RGB
+    perception on the thesis board -- the thesis scene or a real drone's printed board --
+    and the depth map's rule elsewhere."""
+    from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS
+
+    thesis = fly_tello.parse_args(["--run", str(POLICY)])
+    assert thesis.arrival_head == str(DEFAULT_WEIGHTS)
+    rule = thesis.reach_rule
+    assert (rule.max_goal_offset, rule.max_distance) == (fly_tello.HEAD_REACH_OFFSET, 1.0)
+    assert fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.18"]
+                                ).reach_rule.max_goal_offset == 0.18  # the user's value wins
+    real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])
+    assert real.arrival_head == str(DEFAULT_WEIGHTS)
+    for other in (["--layout", "heldout"], ["--perception", "sim"], ["--board-width", "0.8"],
+                  ["--arrival-head", "none"]):
+        args = fly_tello.parse_args(["--run", str(POLICY), *other])
+        assert args.arrival_head is None and args.reach_rule.max_goal_offset in (None,), other
+    generalist = fly_tello.parse_args([])  # the shipped generalist: random layouts
+    assert generalist.arrival_head is None
 
 
 def test_the_depth_models_calibrated_range_is_the_default_threshold():
@@ -154,7 +178,7 @@ def test_the_depth_models_calibrated_range_is_the_default_threshold():
 
     depth = MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8)),
                       meta={"reach_calibration": {"max_distance": 0.38}})
-    args = fly_tello.parse_args(["--run", str(POLICY)])
+    args = fly_tello.parse_args(["--run", str(POLICY), "--arrival-head", "none"])
     assert fly_tello.reach_rule(args, goal_height=1.2, depth=depth).max_distance == 0.38
     assert fly_tello.reach_rule(args, depth=MonoDepth(FCRN())).max_distance == 0.45
     given = fly_tello.parse_args(["--run", str(POLICY), "--reach-distance", "0.5"])
