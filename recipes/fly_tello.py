@@ -483,7 +483,10 @@ def main(argv=None) -> dict:
         noise = ["env.noise=tello"] if args.noise else []
         scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
-        res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + int(cfg.seed) * 1009,
+        # --seed draws other DroneNavEnv episodes too (its noise and, off the thesis scene,
+        # its layouts), as it does the emulator's
+        seed = int(cfg.seed if args.seed is None else args.seed)
+        res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + seed * 1009,
                        max_steps=args.max_steps)
         k = int(round(res["success_rate"] * args.compare_sim))
         lo, hi = wilson(k, args.compare_sim)

@@ -25,7 +25,7 @@ rb.extend(TensorDict(x=torch.zeros(2, 1), batch_size=[2]))
 
 
 @pytest.mark.parametrize("name", ["learning", "training", "vs_sb3", "gridnav", "recording",
-                                  "features"])
+                                  "features", "sim_to_real"])
 def test_torchrl_log_lines_stay_off_stdout(name):
     assert name in BENCHMARKS
     path = ROOT / "benchmarks" / f"{name}.py"

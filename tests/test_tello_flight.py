@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -201,3 +202,21 @@ def test_reach_offset_takes_the_emulated_layouts_board():
     fixed = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2",
                                   "--board-width", "0.8"])
     assert fly_tello.reach_rule(fixed, layout=lay).board_width == 0.8  # the user's board wins
+
+
+def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
+    """benchmarks/sim_to_real.py: one JSON object per seed and one pooled, with the targets;
+    fly_tello's own lines stay off stdout."""
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sim_to_real.py"),
+                        "--episodes", "2", "--seeds", "3", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    figs = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [f["figure"] for f in figs] == ["sim_to_real", "sim_to_real_pooled"]
+    one, pooled = figs
+    assert one["episodes"] == pooled["episodes"] == 2 and one["layout"] == "thesis"
+    assert one["arrival_head"].endswith("arrival.pt")  # the default rule on the thesis board
+    assert 0.0 <= pooled["success_sim"] <= 1.0 and pooled["seeds"] == [3]
+    assert set(pooled["targets"]) == {"inside_dronenav_ci", "agreement", "false_reached",
+                                      "success"}
+    assert (tmp_path / "thesis_seed3" / "episodes.csv").is_file()

@@ -1,0 +1,128 @@
+"""The Tello path beside the simulator: issue 19's targets as JSON lines.
+
+::
+
+    python benchmarks/sim_to_real.py                          # thesis policy, seeds 7 and 11
+    python benchmarks/sim_to_real.py --policies thesis generalist --episodes 50
+    python benchmarks/sim_to_real.py --episodes 2 --seeds 0   # a smoke run
+
+For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
+defaults -- RGB-only perception through the emulated camera path, noisy moves
+(``--noise``), the default arrival rule (``--arrival-head auto``) -- and flies
+the same policy in :class:`~torchrl_causal.envs.DroneNavEnv` under the same
+noise model (``--compare-sim``). The thesis policy flies the thesis scene, the
+generalist held-out random layouts. Prints one JSON object per figure:
+
+* ``{"figure": "sim_to_real", "policy", "seed", ...}`` -- one seed's flights:
+  the simulator-judged success with its 95 % Wilson interval, the arrival
+  rule's agreement with the simulator, false "reached", missed arrivals,
+  crashes, and ``DroneNavEnv``'s success with its interval;
+* ``{"figure": "sim_to_real_pooled", "policy", ...}`` -- all seeds of a policy
+  together, with the targets: success >= 0.85 (thesis policy) and inside
+  ``DroneNavEnv``'s interval, agreement >= 0.95, false "reached" rarer than
+  1 in 20.
+
+fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
+``summary.json``) goes under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import fly_tello  # noqa: E402
+from results import wilson  # noqa: E402
+
+from torchrl_causal.pretrained import policy_dir  # noqa: E402
+
+#: The issue's targets (simulator-judged, RGB only, noisy moves).
+TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reached_max": 0.05}
+
+
+def fly(policy: str, seed: int, episodes: int, out: Path) -> dict:
+    """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule."""
+    argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
+            "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
+            "--out", str(out)]
+    with contextlib.redirect_stdout(sys.stderr):
+        return fly_tello.main(argv)
+
+
+def seed_figure(policy: str, seed: int, s: dict) -> dict:
+    n = s["success_sim"]["n"]
+    return {"figure": "sim_to_real", "policy": policy, "seed": seed, "episodes": n,
+            "layout": s.get("layout"), "arrival_head": s.get("arrival_head"),
+            "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
+            "agreement": s["agreement"], "false_reached": s["false_reached"],
+            "missed_reach": s["missed_reach"], "crashes": s["crashes"],
+            "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],
+            "wall_s": s.get("wall_s")}
+
+
+def pooled_figure(policy: str, figures: list[dict]) -> dict:
+    n = sum(f["episodes"] for f in figures)
+    k = round(sum(f["success_sim"] * f["episodes"] for f in figures))
+    agree = round(sum(f["agreement"] * f["episodes"] for f in figures))
+    kd = round(sum(f["dronenav"] * f["episodes"] for f in figures))
+    false = sum(f["false_reached"] for f in figures)
+    lo, hi = wilson(k, n)
+    dlo, dhi = wilson(kd, n)
+    alo, ahi = wilson(agree, n)
+    out = {"figure": "sim_to_real_pooled", "policy": policy,
+           "seeds": [f["seed"] for f in figures], "episodes": n,
+           "success_sim": round(k / n, 4), "success_sim_ci95": [round(lo, 4), round(hi, 4)],
+           "agreement": round(agree / n, 4), "agreement_ci95": [round(alo, 4), round(ahi, 4)],
+           "false_reached": false, "missed_reach": sum(f["missed_reach"] for f in figures),
+           "crashes": sum(f["crashes"] for f in figures),
+           "dronenav": round(kd / n, 4), "dronenav_ci95": [round(dlo, 4), round(dhi, 4)]}
+    target = TARGETS["success_min"].get(policy)
+    out["targets"] = {
+        "inside_dronenav_ci": bool(dlo <= k / n <= dhi),
+        "agreement": bool(agree / n >= TARGETS["agreement_min"]),
+        "false_reached": bool(false / n < TARGETS["false_reached_max"]),
+        **({"success": bool(k / n >= target)} if target is not None else {})}
+    return out
+
+
+def main(argv=None) -> list[dict]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--policies", nargs="+", default=["thesis"],
+                   help="shipped policies (torchrl_causal.pretrained): thesis, generalist")
+    p.add_argument("--seeds", nargs="+", type=int, default=[7, 11],
+                   help="emulator seeds: each flies its own noise draws (and layouts)")
+    p.add_argument("--episodes", type=int, default=50, help="episodes per seed")
+    p.add_argument("--out", type=Path, default=ROOT / "outputs" / "sim_to_real")
+    a = p.parse_args(argv)
+    if a.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {a.episodes}")
+    for name in a.policies:
+        try:
+            policy_dir(name)
+        except (KeyError, ValueError, FileNotFoundError) as e:
+            p.error(f"--policies: {name!r} is not a shipped policy ({e})")
+    figures = []
+    for name in a.policies:
+        per_seed = []
+        for seed in a.seeds:
+            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}")
+            per_seed.append(seed_figure(name, seed, s))
+            print(json.dumps(per_seed[-1]), flush=True)
+        figures += per_seed
+        figures.append(pooled_figure(name, per_seed))
+        print(json.dumps(figures[-1]), flush=True)
+    return figures
+
+
+if __name__ == "__main__":
+    main()
