@@ -149,14 +149,18 @@ def test_train_arrival_recipe_writes_measured_weights(tmp_path):
 
     out = tmp_path / "head.pt"
     figures = train_arrival.main(["--out", str(out), "--train", "8", "--test", "6",
-                                  "--epochs", "1", "--no-progress"])
+                                  "--epochs", "1", "--no-progress", "--yaw-weight", "1"])
     assert figures["test"]["n"] == 6 and len(figures["test"]["rule"]) == 4
-    assert GoalOffsetEstimator.load(out).meta["near_share"] == 0.5
+    head = GoalOffsetEstimator.load(out)
+    assert head.meta["near_share"] == 0.5 and head.meta["yaw_weight"] == 1.0
+    # the auxiliary yaw output is kept in the file; the estimator still answers (ahead, lateral)
+    assert head.net.outputs == 3 and tuple(head(np.zeros((2, 96, 128, 3), np.uint8)).shape) == (2, 2)
     import json
 
     assert json.loads(out.with_suffix(".json").read_text())["test"] == figures["test"]
     for argv, message in ((["--near-share", "2"], "--near-share=2.0"),
                           (["--epochs", "0"], "--epochs=0"),
+                          (["--yaw-weight", "-1"], "--yaw-weight=-1.0"),
                           (["--out", str(tmp_path / "head.bin")], "expected a .pt file")):
         with pytest.raises(ValueError, match=message):
             train_arrival.main(["--out", str(out), *argv])
