@@ -184,9 +184,14 @@ def _views84(root: Path, split: str, n: int) -> list:
     from torchrl_causal.perception.dataset import render_views
 
     meta = json.loads((root / "meta.json").read_text())
+    options = dict(meta.get("view_options", {}))
+    if options.get("video_path") is not None:  # meta.json holds the path's settings
+        from torchrl_causal.perception.video_path import VideoPath
+
+        options["video_path"] = VideoPath.from_dict(options["video_path"],
+                                                    seed=int(meta.get("seed", 0)))
     return list(render_views(split, n, seed=int(meta.get("seed", 0)), image_size=84,
-                             layout_seed=int(meta.get("layout_seed", 0)),
-                             **meta.get("view_options", {})))
+                             layout_seed=int(meta.get("layout_seed", 0)), **options))
 
 
 def calibrate(weights: Path, data_root: Path, meta: dict, extra=()) -> tuple[dict, dict]:

@@ -75,3 +75,19 @@ def test_dataset_views_through_the_video_path_keep_exact_depth_and_boxes(tmp_pat
     saved = json.loads((tmp_path / "meta.json").read_text())
     assert saved["view_options"]["video_path"]["codec"] == "libx264"
     assert meta["counts"]["train"] == 2
+    # meta.json's settings rebuild the path (train_detector re-renders val views at 84 x 84
+    # from them), and the same seed jitters the same way
+    again = VideoPath.from_dict(saved["view_options"]["video_path"], seed=5)
+    assert again.to_dict() == VideoPath(stream_size=(240, 320)).to_dict()
+    img = np.full((240, 320, 3), 128, np.uint8)
+    assert np.array_equal(again.jitter(img), VideoPath(stream_size=(240, 320), seed=5).jitter(img))
+    with pytest.raises(ValueError, match="libx264"):
+        VideoPath.from_dict({**saved["view_options"]["video_path"], "codec": "vp9"})
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    import train_detector
+
+    views84 = train_detector._views84(tmp_path, "train", 2)
+    assert len(views84) == 2 and views84[0].rgb.shape == (84, 84, 3)

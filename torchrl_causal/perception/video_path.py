@@ -203,6 +203,24 @@ class VideoPath:
                 "exposure": self.exposure, "blur": self.blur, "noise": self.noise,
                 "codec": "libx264", "x264": X264_OPTIONS(self.gop)}
 
+    @classmethod
+    def from_dict(cls, settings: dict, seed: int = 0) -> "VideoPath":
+        """The path :meth:`to_dict` described (a dataset's ``meta.json``), with a new
+        jitter generator seeded ``seed``.
+
+        Raises:
+            ValueError: settings of another codec, or bad values (named).
+        """
+        if not isinstance(settings, dict) or settings.get("codec", "libx264") != "libx264":
+            raise ValueError(f"VideoPath.from_dict: expected the settings of a libx264 path "
+                             f"(VideoPath.to_dict), got {settings!r}")
+        keys = ("stream_size", "bitrate", "gop", "exposure", "blur", "noise")
+        kw = {k: settings[k] for k in keys if k in settings}
+        for k in ("stream_size", "exposure", "blur", "noise"):  # JSON lists back to pairs
+            if isinstance(kw.get(k), list):
+                kw[k] = tuple(kw[k])
+        return cls(**kw, seed=seed)
+
     def close(self) -> None:
         """Frees the codec contexts (a later call opens new ones)."""
         self._enc = self._dec = None
