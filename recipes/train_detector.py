@@ -207,6 +207,9 @@ def calibrate(weights: Path, data_root: Path, meta: dict, extra=()) -> tuple[dic
     val, val84 = [], []
     for root in (data_root, *map(Path, extra)):
         views = load_views(root, "val")
+        if max(views[0].rgb.shape[:2]) <= 128:  # a dataset rendered small already
+            val84 += views
+            continue
         val += views
         val84 += _views84(root, "val", len(views))
     h, w = val[0].rgb.shape[:2]

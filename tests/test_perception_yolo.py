@@ -206,3 +206,15 @@ def test_core_importable_without_ultralytics():
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
+def test_calibration_fits_views_of_several_sizes_together(detector, fresh_views):
+    """fit_calibration on a mixture (a 240 x 320 split plus an 84 x 84 one, as
+    train_detector's --extra-data gives) calls the detector once per size."""
+    from torchrl_causal.perception.yolo import fit_calibration
+
+    small = list(render_views("val", 24, seed=0, image_size=84))
+    large = [v for v in fresh_views if v.rgb.shape[0] == 240][:12]
+    alone = fit_calibration(detector, small)
+    mixed = fit_calibration(detector, large + small)
+    assert mixed["n"] > alone["n"] and mixed["a"] > 0  # the large views were fitted too

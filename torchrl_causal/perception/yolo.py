@@ -342,10 +342,15 @@ def fit_calibration(detector: YoloGoalDetector, views, *, iou_threshold: float =
         raise ValueError("views is empty")
     saved = detector.calibration, detector.calibration_small
     detector.calibration = detector.calibration_small = None
+    # frames of one size per detector call (views of several sizes may come together)
+    by_size: dict = {}
+    for v in views:
+        by_size.setdefault(v.rgb.shape, []).append(v)
+    chunks = [group[i : i + batch_size] for group in by_size.values()
+              for i in range(0, len(group), batch_size)]
     try:
         xs, ys = [], []
-        for i in range(0, len(views), batch_size):
-            chunk = views[i : i + batch_size]
+        for chunk in chunks:
             boxes, scores = detector(torch.from_numpy(np.stack([v.rgb for v in chunk])))
             best, j = scores.max(-1)
             for v, s, box in zip(chunk, best.tolist(), boxes[torch.arange(len(chunk)), j]):
