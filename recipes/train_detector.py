@@ -205,9 +205,13 @@ def calibrate(weights: Path, data_root: Path, meta: dict, extra=()) -> tuple[dic
 
     det = YoloGoalDetector(weights, calibration=None)
     val, val84 = [], []
+    primary_small = None
     for root in (data_root, *map(Path, extra)):
         views = load_views(root, "val")
-        if max(views[0].rgb.shape[:2]) <= 128:  # a dataset rendered small already
+        small = max(views[0].rgb.shape[:2]) <= 128
+        if primary_small is None:
+            primary_small = small
+        elif small and not primary_small:  # an extra dataset rendered small already
             val84 += views
             continue
         val += views

@@ -215,6 +215,7 @@ def test_calibration_fits_views_of_several_sizes_together(detector, fresh_views)
 
     small = list(render_views("val", 24, seed=0, image_size=84))
     large = [v for v in fresh_views if v.rgb.shape[0] == 240][:12]
-    alone = fit_calibration(detector, small)
-    mixed = fit_calibration(detector, large + small)
+    # a strict IoU makes some detections "wrong", so a fit exists whatever the weights
+    alone = fit_calibration(detector, small, iou_threshold=0.85)
+    mixed = fit_calibration(detector, large + small, iou_threshold=0.85)
     assert mixed["n"] > alone["n"] and mixed["a"] > 0  # the large views were fitted too

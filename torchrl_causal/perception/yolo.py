@@ -328,10 +328,10 @@ def fit_calibration(detector: YoloGoalDetector, views, *, iou_threshold: float =
 
     Example:
         >>> from torchrl_causal.perception.dataset import render_views
-        >>> fit = fit_calibration(YoloGoalDetector(), list(render_views("val", 24, seed=0,
+        >>> fit = fit_calibration(YoloGoalDetector(), list(render_views("val", 48, seed=0,
         ...                                                             image_size=84)))
         >>> fit["n"], fit["positives"], fit["a"] > 0
-        (18, 16, True)
+        (32, 31, True)
     """
     import numpy as np
 
