@@ -402,6 +402,11 @@ RUN_ONLY_KEYS = ("seed", "device", "threads", "progress", "output_dir", "checkpo
                  "logger", "outputs")
 
 
+#: Config keys added after runs were made, with the value that computes what their
+#: absence did: a stored run without the key matches a grid that has this value.
+ADDED_KEYS = {"env.noise": "none"}
+
+
 def _flatten(node, prefix: str = "") -> dict:
     if isinstance(node, dict):
         out = {}
@@ -415,7 +420,8 @@ def check_root_configs(root: Path, plan: list[Run], overrides: list[str]) -> Non
     """Refuses a ``--root`` whose run folders hold runs of another config than the grid's
     (another ``--mode``, preset or override), before any job starts: such a run would be
     resumed, or counted as done, under the wrong protocol. Keys of :data:`RUN_ONLY_KEYS`
-    may differ (a run of the grid may have trained on a GPU, for instance).
+    may differ (a run of the grid may have trained on a GPU, for instance), and a key of
+    :data:`ADDED_KEYS` missing from a stored run counts as its neutral value.
 
     Raises:
         ValueError: naming ``--root``, the run folder and the keys that differ.
@@ -434,6 +440,7 @@ def check_root_configs(root: Path, plan: list[Run], overrides: list[str]) -> Non
             cfg = compose_run_config(merge_overrides(overrides, extra), variant)
             expected[key] = _flatten(OmegaConf.to_container(cfg, resolve=True))
         stored = _flatten(OmegaConf.to_container(OmegaConf.load(path), resolve=True))
+        stored = {**ADDED_KEYS, **stored}  # keys newer than the run, at their neutral value
         want = expected[key]
         missing = object()
         diff = sorted(k for k in set(want) | set(stored)

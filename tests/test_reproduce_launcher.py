@@ -252,6 +252,24 @@ def test_root_of_another_config_is_refused_before_any_job(tmp_path, capsys):
                            "--groups", "variants", "--dry-run", "--no-estimate",
                            "--root", str(tmp_path)]) == {}
     assert "resumes" not in capsys.readouterr().out  # a config only, no checkpoint
+    # a run made before env.noise existed (no such key) is the grid's own, a noisy one is not
+    from omegaconf import OmegaConf
+
+    old = tmp_path / "variants" / "cbn_pn" / "seed_0"
+    _write_run_config(old, [*full, "seed=0"], "cbn_pn")
+    cfg = OmegaConf.load(old / "config.yaml")
+    del cfg.env["noise"]
+    (old / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    assert reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_pn",
+                           "--groups", "variants", "--dry-run", "--no-estimate",
+                           "--root", str(tmp_path)]) == {}
+    noisy = tmp_path / "noisy"
+    _write_run_config(noisy / "variants" / "cbn_v2" / "seed_0",
+                      [*full, "seed=0", "env.noise=tello"], "cbn_v2")
+    with pytest.raises(ValueError, match="env.noise: 'tello' there, 'none' in this grid"):
+        reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_v2",
+                        "--groups", "variants", "--dry-run", "--no-estimate",
+                        "--root", str(noisy)])
     _write_run_config(tmp_path / "k_sweep" / "k_400" / "seed_0",
                       [*reproduce.MODES["reduced"]["overrides"], "causal.k=400"], "cbn_v2")
     with pytest.raises(ValueError, match=r"--root=.*k_400/seed_0 holds a run of another "
