@@ -402,6 +402,8 @@ def main(argv=None) -> dict:
     run = Path(args.run)
     cfg = OmegaConf.load(run / "config.yaml")
     real = args.host is not None
+    # the emulator's scene and noise draws, and --compare-sim's episodes (--seed: others)
+    seed = int(cfg.seed if args.seed is None else args.seed)
     args.out = args.out or str(run / (f"tello_{args.host}" if real else "tello_emulator"))
     Path(args.out).mkdir(parents=True, exist_ok=True)
     summary: dict = {"run": str(run), "target": args.host or "emulator",
@@ -439,8 +441,7 @@ def main(argv=None) -> dict:
         summary["layout"] = scene
         layout_opts = train_recipe.ru.SCENES[scene]
         noise = NOISE if args.noise else {}
-        seed = cfg.seed if args.seed is None else args.seed
-        summary["seed"] = int(seed)
+        summary["seed"] = seed
         with TelloEmulator(env_options=dict(layout_opts, seed=seed, **noise),
                            video_size=args.video_hw, time_scale=args.time_scale,
                            battery_drain_per_min=0.0) as emu:
@@ -483,9 +484,6 @@ def main(argv=None) -> dict:
         noise = ["env.noise=tello"] if args.noise else []
         scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
-        # --seed draws other DroneNavEnv episodes too (its noise and, off the thesis scene,
-        # its layouts), as it does the emulator's
-        seed = int(cfg.seed if args.seed is None else args.seed)
         res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + seed * 1009,
                        max_steps=args.max_steps)
         k = int(round(res["success_rate"] * args.compare_sim))

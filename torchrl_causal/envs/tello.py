@@ -654,7 +654,7 @@ class TelloEnv(EnvBase):
         offset = None if crashed else self._goal_offset(in_sight, depth[0], box, alt, frame,
                                                         dist)
         if not in_sight and offset is not None:  # the arrival head held a board just lost
-            reached = not crashed and offset <= self.reach_rule.max_goal_offset
+            reached = offset <= self.reach_rule.max_goal_offset  # (no offset when crashed)
         else:
             reached = not crashed and self.reach_rule(
                 in_sight=in_sight, distance=dist, angle=angle, box=box,
