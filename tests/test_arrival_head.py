@@ -147,12 +147,22 @@ def test_train_arrival_recipe_writes_measured_weights(tmp_path):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
     import train_arrival
 
-    out = tmp_path / "head.pt"
+    out, data = tmp_path / "head.pt", tmp_path / "frames.npz"
     figures = train_arrival.main(["--out", str(out), "--train", "8", "--test", "6",
-                                  "--epochs", "1", "--no-progress", "--yaw-weight", "1"])
+                                  "--epochs", "1", "--no-progress", "--yaw-weight", "1",
+                                  "--yaw-deg", "45", "--data", str(data)])
     assert figures["test"]["n"] == 6 and len(figures["test"]["rule"]) == 4
     head = GoalOffsetEstimator.load(out)
     assert head.meta["near_share"] == 0.5 and head.meta["yaw_weight"] == 1.0
+    assert head.meta["yaw_deg"] == 45.0
+    frames = np.load(data)  # the rendered frames were kept, turned up to 45 deg
+    assert frames["xtr"].shape == (8, *INPUT_SIZE, 3) and frames["yte"].shape == (6, 4)
+    assert (abs(frames["ytr"][:, 3]) <= 45).all() and (abs(frames["ytr"][:, 3]) > 30).any()
+    # a second run reads them back instead of rendering: the same figures
+    again = train_arrival.main(["--out", str(tmp_path / "again.pt"), "--train", "8", "--test",
+                                "6", "--epochs", "1", "--no-progress", "--yaw-weight", "1",
+                                "--data", str(data)])
+    assert again["test"] == figures["test"]
     # the auxiliary yaw output is kept in the file; the estimator still answers (ahead, lateral)
     assert head.net.outputs == 3 and tuple(head(np.zeros((2, 96, 128, 3), np.uint8)).shape) == (2, 2)
     import json
@@ -161,6 +171,8 @@ def test_train_arrival_recipe_writes_measured_weights(tmp_path):
     for argv, message in ((["--near-share", "2"], "--near-share=2.0"),
                           (["--epochs", "0"], "--epochs=0"),
                           (["--yaw-weight", "-1"], "--yaw-weight=-1.0"),
+                          (["--yaw-deg", "120"], "--yaw-deg=120.0"),
+                          (["--data", str(data), "--train", "9"], "holds 8 \\+ 6 frames"),
                           (["--out", str(tmp_path / "head.bin")], "expected a .pt file")):
         with pytest.raises(ValueError, match=message):
             train_arrival.main(["--out", str(out), *argv])
