@@ -124,6 +124,9 @@ def parse_args(argv=None):
                         f"{HEAD_REACH_OFFSET} where it was measured -- RGB perception and the "
                         "1.0 m thesis board (the thesis scene, or a real drone with the field "
                         "guide's printed board) -- else none; 'none': the depth map's rule")
+    p.add_argument("--arrival-fusion", action="store_true",
+                   help="with the arrival head: average its estimates over the steps that did "
+                        "not move the drone across the floor (turns, climbs)")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -186,6 +189,9 @@ def parse_args(argv=None):
             a.arrival_head = str(DEFAULT_WEIGHTS)
         if not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
+    if a.arrival_fusion and a.arrival_head is None:
+        p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
+                "(--arrival-head shipped or a weights file; 'auto' chose none here)")
     if a.no_height_check:
         a.reach_height = None
     try:
@@ -294,6 +300,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         from torchrl_causal.perception.arrival import GoalOffsetEstimator
 
         kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
+        kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
     if layout is not None:  # the emulated scene's flight volume, in the take-off frame
         x0, y0, _ = layout.start_pos
         xa, ya, xb, yb = layout.arena
@@ -412,6 +419,8 @@ def main(argv=None) -> dict:
     for opt in ("depth_weights", "detector_weights", "arrival_head"):
         if getattr(args, opt, None):
             summary[opt] = str(getattr(args, opt))
+    if getattr(args, "arrival_fusion", False):
+        summary["arrival_fusion"] = True
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

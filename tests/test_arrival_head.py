@@ -132,6 +132,23 @@ def test_tello_env_arrives_by_the_head():
     assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
     assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # two in a row
     held.close()
+    # arrival_fusion: looks taken without a move across the floor (a turn: _last_move is
+    # zero) are averaged; a move forward starts a new place, with its segment
+    seq = iter([(0.30, 0.0), (0.10, 0.0), (0.20, 0.0), (0.05, 0.10)])
+    fused = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                     reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+                     arrival_fusion=True)
+    assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.30)
+    fused._last_move = (0.0, 0.0, 0.0)  # turned in place
+    assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.20)
+    assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.20)
+    fused._last_move = (0.0, 0.2, 0.0)  # flew forward: the segment from the fused place
+    assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
+        segment_distance((0.20, 0.0), (0.05, 0.10)))
+    fused.close()
+    with pytest.raises(ValueError, match="arrival_fusion must be a bool"):
+        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                 reach_rule=rule, arrival_head=head((0.0, 0.0)), arrival_fusion="yes")
     with pytest.raises(ValueError, match="arrival_head needs a reach_rule with max_goal_offset"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  arrival_head=head((0.0, 0.0)))

@@ -126,6 +126,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--arrival-head", "x.pt"], "--arrival-head 'x.pt' needs --reach-offset"),
     (["--host", "192.168.10.1", "--seed", "3", "--dry-run"], "the option is the emulator's"),
     (["--arrival-head", "missing.pt", "--reach-offset", "0.2"], "'missing.pt': no such file"),
+    (["--arrival-head", "none", "--arrival-fusion"], "--arrival-fusion fuses the arrival head"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -160,6 +161,7 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
     assert thesis.arrival_head == str(DEFAULT_WEIGHTS)
     rule = thesis.reach_rule
     assert (rule.max_goal_offset, rule.max_distance) == (fly_tello.HEAD_REACH_OFFSET, 1.0)
+    assert fly_tello.parse_args(["--run", str(POLICY), "--arrival-fusion"]).arrival_fusion
     assert fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.18"]
                                 ).reach_rule.max_goal_offset == 0.18  # the user's value wins
     real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])

@@ -192,6 +192,10 @@ class TelloEnv(EnvBase):
             height sensor's difference, to the segment since the last step's
             estimate) instead of the depth map's board plane; needs a ``reach_rule``
             with ``max_goal_offset`` (docs/tello.rst, "A learned arrival head").
+        arrival_fusion: with ``arrival_head``, average the head's ``(ahead, lateral)``
+            over consecutive asked steps whose moves did not move the drone across the
+            floor (turns, climbs, refused moves): the drone is where it was, so the
+            estimates of one place are fused (docs/tello.rst, "Fused over turns").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
@@ -251,6 +255,7 @@ class TelloEnv(EnvBase):
         confidence_threshold: float = 0.7,
         reach_rule: ReachRule | None = None,
         arrival_head: Callable | None = None,
+        arrival_fusion: bool = False,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         min_height: float = 0.2,
         max_height: float = 2.5,
@@ -343,7 +348,11 @@ class TelloEnv(EnvBase):
         self.max_steps = int(max_steps)
         self.max_depth = float(max_depth)
         self.reach_rule = reach_rule
+        if not isinstance(arrival_fusion, bool):
+            raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
+        self.arrival_fusion = arrival_fusion
+        self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
         self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
         self._prev_seen = False  # that estimate came with the board in the detector's sight
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
@@ -628,9 +637,17 @@ class TelloEnv(EnvBase):
                 return None
             if abs(dz) > rule.max_goal_offset:  # the height sensor alone puts it outside
                 return abs(dz)
-            ahead, lateral = np.asarray(self.arrival_head(np.asarray(frame)[None]),
-                                        float).reshape(-1)[:2]
-            cur = np.array([ahead, lateral, dz])
+            look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
+                              float).reshape(-1)[:2]
+            stayed = prev is not None and not any(self._last_move[:2])  # no move across
+            if self.arrival_fusion and stayed and self._fused is not None:
+                total, n = self._fused
+                self._fused = (total + look, n + 1)
+                look = self._fused[0] / self._fused[1]
+                prev = np.array([look[0], look[1], prev[2]])  # one place, fused: no segment
+            else:
+                self._fused = (look.copy(), 1)
+            cur = np.array([look[0], look[1], dz])
             self._prev_offset, self._prev_seen = cur, in_sight
             return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
