@@ -146,6 +146,20 @@ def test_tello_env_arrives_by_the_head():
     assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
         segment_distance((0.20, 0.0), (0.05, 0.10)))
     fused.close()
+    # a descent that crosses the goal's height: both ends are outside the sphere by the
+    # height sensor, but the drone passed through it -- the head is asked, and the
+    # vertical segment from the last height counts the pass; across the floor it is not
+    hrule = ReachRule(max_distance=1.0, max_goal_offset=0.15, goal_height=1.0)
+    for move, reached in (((0.0, 0.0, -0.4), True), ((0.0, 0.25, 0.0), False)):
+        crossed = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                           reach_rule=hrule, arrival_head=head((0.05, 0.0)))
+        assert crossed._goal_offset(True, dmap, box, 1.2, frame, 0.6) == pytest.approx(0.2)
+        crossed._last_move = move
+        off = crossed._goal_offset(True, dmap, box, 0.8, frame, 0.6)
+        assert (off <= 0.15) is reached, (move, off)
+        if reached:
+            assert off == pytest.approx(0.05)
+        crossed.close()
     with pytest.raises(ValueError, match="arrival_fusion must be a bool"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  reach_rule=rule, arrival_head=head((0.0, 0.0)), arrival_fusion="yes")

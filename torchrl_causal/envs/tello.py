@@ -353,6 +353,7 @@ class TelloEnv(EnvBase):
         self.arrival_head = arrival_head
         self.arrival_fusion = arrival_fusion
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
+        self._prev_dz = None  # the height sensor's offset from the goal height, last step
         self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
         self._prev_seen = False  # that estimate came with the board in the detector's sight
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
@@ -597,7 +598,7 @@ class TelloEnv(EnvBase):
             >>> env.close()
         """
         pixels = self.preprocess(frame)
-        self._prev_offset = None  # one frame alone: no segment
+        self._prev_offset = self._prev_dz = None  # one frame alone: no segment
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
         depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
         meas = self.goal_meter(pixels.unsqueeze(0), depth)
@@ -632,11 +633,19 @@ class TelloEnv(EnvBase):
             prev, self._prev_offset = self._prev_offset, None
             held, self._prev_seen = prev is not None and self._prev_seen, False
             dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
+            # a climb or a descent without a move across the floor sweeps the heights
+            # between the last step's and this one's: it may have crossed the goal's
+            dz_prev, self._prev_dz = self._prev_dz, dz
+            climbed = (dz_prev is not None and bool(self._last_move[2])
+                       and not any(self._last_move[:2]))
             if frame is None or (not in_sight and not held) or (
                     in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
-            if abs(dz) > rule.max_goal_offset:  # the height sensor alone puts it outside
-                return abs(dz)
+            nearest = abs(dz)
+            if climbed:
+                nearest = 0.0 if dz_prev * dz <= 0 else min(abs(dz_prev), abs(dz))
+            if nearest > rule.max_goal_offset:  # the height sensor alone puts it outside
+                return nearest
             look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
                               float).reshape(-1)[:2]
             stayed = prev is not None and not any(self._last_move[:2])  # no move across
@@ -648,6 +657,8 @@ class TelloEnv(EnvBase):
             else:
                 self._fused = (look.copy(), 1)
             cur = np.array([look[0], look[1], dz])
+            if prev is None and climbed:  # the same place, swept from the last height
+                prev = np.array([look[0], look[1], dz_prev])
             self._prev_offset, self._prev_seen = cur, in_sight
             return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
@@ -698,7 +709,7 @@ class TelloEnv(EnvBase):
             self._steps = 0
             self._prev_distance = None
             self._last_move = (0.0, 0.0, 0.0)
-            self._prev_offset = None
+            self._prev_offset = self._prev_dz = None
             obs = self._observe(self._current_frame())
         except BaseException as e:
             self.land(reason=f"exception in reset: {e!r}")
