@@ -160,6 +160,17 @@ def test_tello_env_arrives_by_the_head():
         if reached:
             assert off == pytest.approx(0.05)
         crossed.close()
+    # ... and when the detector loses the board on that descent (it was sighted within
+    # range one step before, the head kept from being asked by the height sensor), the
+    # board is held: a climb does not turn the camera away; a move across the floor does
+    for move, expected in (((0.0, 0.0, -0.4), 0.05), ((0.0, 0.25, 0.0), None)):
+        lost = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                        reach_rule=hrule, arrival_head=head((0.05, 0.0)))
+        assert lost._goal_offset(True, dmap, box, 1.2, frame, 0.6) == pytest.approx(0.2)
+        lost._last_move = move
+        off = lost._goal_offset(False, dmap, box, 0.8, frame, 0.0)
+        assert off == (None if expected is None else pytest.approx(expected)), (move, off)
+        lost.close()
     with pytest.raises(ValueError, match="arrival_fusion must be a bool"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  reach_rule=rule, arrival_head=head((0.0, 0.0)), arrival_fusion="yes")

@@ -354,6 +354,7 @@ class TelloEnv(EnvBase):
         self.arrival_fusion = arrival_fusion
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
         self._prev_dz = None  # the height sensor's offset from the goal height, last step
+        self._prev_sighted = False  # the detector saw the board within range, last step
         self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
         self._prev_seen = False  # that estimate came with the board in the detector's sight
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
@@ -599,6 +600,7 @@ class TelloEnv(EnvBase):
         """
         pixels = self.preprocess(frame)
         self._prev_offset = self._prev_dz = None  # one frame alone: no segment
+        self._prev_sighted = False
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
         depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
         meas = self.goal_meter(pixels.unsqueeze(0), depth)
@@ -627,7 +629,10 @@ class TelloEnv(EnvBase):
         A board the detector loses right after the head was asked with it in sight (at
         0.3-0.4 m it fills the view and the detector's recall falls) is still the board
         in front: the head is asked for that one step more, never for two in a row
-        without a detection."""
+        without a detection. A climb or descent (no move across the floor) sweeps the
+        heights between two steps: the height sensor's gate then looks at the nearest
+        of them, the segment runs vertically from the last height, and a board sighted
+        within range one step before is held even if the head was not asked there."""
         if self.arrival_head is not None:
             rule = self.reach_rule
             prev, self._prev_offset = self._prev_offset, None
@@ -638,6 +643,12 @@ class TelloEnv(EnvBase):
             dz_prev, self._prev_dz = self._prev_dz, dz
             climbed = (dz_prev is not None and bool(self._last_move[2])
                        and not any(self._last_move[:2]))
+            # a climb or descent does not turn the camera away: a board sighted within
+            # range one step before (even where the height sensor kept the head from being
+            # asked) is held too
+            sighted, self._prev_sighted = self._prev_sighted, in_sight and (
+                distance is None or distance <= rule.max_distance)
+            held = held or (climbed and sighted)
             if frame is None or (not in_sight and not held) or (
                     in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
@@ -710,6 +721,7 @@ class TelloEnv(EnvBase):
             self._prev_distance = None
             self._last_move = (0.0, 0.0, 0.0)
             self._prev_offset = self._prev_dz = None
+            self._prev_sighted = False
             obs = self._observe(self._current_frame())
         except BaseException as e:
             self.land(reason=f"exception in reset: {e!r}")
