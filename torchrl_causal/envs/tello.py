@@ -352,11 +352,7 @@ class TelloEnv(EnvBase):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
         self.arrival_fusion = arrival_fusion
-        self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
-        self._prev_dz = None  # the height sensor's offset from the goal height, last step
-        self._prev_sighted = False  # the detector saw the board within range, last step
-        self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
-        self._prev_seen = False  # that estimate came with the board in the detector's sight
+        self._forget_arrival()
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
         self.max_height = float(max_height)
@@ -599,8 +595,7 @@ class TelloEnv(EnvBase):
             >>> env.close()
         """
         pixels = self.preprocess(frame)
-        self._prev_offset = self._prev_dz = None  # one frame alone: no segment
-        self._prev_sighted = False
+        self._forget_arrival()  # one frame alone: no segment
         depth = torch.as_tensor(self.depth_estimator(pixels.unsqueeze(0)), dtype=torch.float32)
         depth = depth.reshape(1, *self.image_size).clamp(0.0, self.max_depth)
         meas = self.goal_meter(pixels.unsqueeze(0), depth)
@@ -617,6 +612,15 @@ class TelloEnv(EnvBase):
                               box=out["box"], width=self.image_size[1], altitude=alt,
                               goal_offset=out["goal_offset"])
         return out
+
+    def _forget_arrival(self) -> None:
+        """Drops what the arrival rule carries from step to step (a new episode, or one
+        frame measured alone)."""
+        self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
+        self._prev_seen = False  # that estimate came with the board in the detector's sight
+        self._prev_dz = None  # the height sensor's offset from the goal height, last step
+        self._prev_sighted = False  # the detector saw the board within range, last step
+        self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
                      frame=None, distance: float | None = None) -> float | None:
@@ -720,8 +724,7 @@ class TelloEnv(EnvBase):
             self._steps = 0
             self._prev_distance = None
             self._last_move = (0.0, 0.0, 0.0)
-            self._prev_offset = self._prev_dz = None
-            self._prev_sighted = False
+            self._forget_arrival()
             obs = self._observe(self._current_frame())
         except BaseException as e:
             self.land(reason=f"exception in reset: {e!r}")
