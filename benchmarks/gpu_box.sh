@@ -106,7 +106,7 @@ root, out, secs, jobs, rc = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), in
 runs = []
 t0 = (root / ".grid_start").stat().st_mtime
 for s in sorted(root.rglob("summary.json")):
-    if s.stat().st_mtime < t0:
+    if s.stat().st_mtime <= t0:
         continue  # a record copied in from GRID_RECORDS
     d = json.loads(s.read_text())
     wall = s.stat().st_mtime - (s.parent / "config.yaml").stat().st_mtime
