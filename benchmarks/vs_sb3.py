@@ -26,11 +26,19 @@ Figures (one JSON object each):
   periodic greedy evaluation (``--eval-every`` frames, ``--eval-episodes``
   episodes on the thesis scene) that reaches the goal, within ``--frames``;
   and the final greedy success. Target: not worse than SB3 within the CIs.
+* with ``--overheads N``, where the loop's time goes beside SB3's:
+  ``stepping`` (random actions for N frames, alternated ``--repeats`` times: the
+  gym-style step SB3 drives, TorchRL's ``step_and_maybe_reset`` loop, the collector with
+  4-frame batches, and the same collector with the images dropped by an
+  ``ExcludeTransform``) and ``update`` (milliseconds per gradient step, 4 x N/4 steps:
+  the recipe's ``DQNLoss`` update with Adam single-tensor / ``foreach`` / ``fused``, and the
+  same network, batch, Huber loss, clip and Adam written as plain PyTorch).
 
 ::
 
     python benchmarks/vs_sb3.py                               # speed + 3 seeds x 12,000 frames
     python benchmarks/vs_sb3.py --seeds 0 --frames 4000 --speed-frames 1000   # a quick look
+    python benchmarks/vs_sb3.py --seeds --speed-frames 0 --overheads 1200     # overheads only
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
 """
@@ -194,6 +202,123 @@ def run_sb3(cfg, seed: int, eval_every: int, eval_episodes: int) -> dict:
     return {"fps": frames / seconds, "evals": evals, "final": final}
 
 
+def stepping_fps(cfg, frames: int) -> dict:
+    """Frames/s of random actions on the recipe's env: the gym-style step SB3 drives, the
+    env's own ``step_and_maybe_reset`` loop, and the loop's collector (4-frame batches),
+    with and without the images (``ExcludeTransform`` after the feature stack)."""
+    import recipe_utils as ru
+    import train as train_recipe
+    from torchrl.collectors import Collector
+    from torchrl.envs import ExcludeTransform, TransformedEnv
+
+    def make():
+        return train_recipe.build_env(cfg, ru.VARIANTS[cfg.variant], "thesis", "cpu")
+
+    def timed(fn):
+        t0 = time.perf_counter()
+        fn()
+        return round(frames / (time.perf_counter() - t0), 1)
+
+    def gym_steps():
+        env = sb3_env(cfg)
+        env.reset(seed=0)
+        for _ in range(frames):
+            _, _, term, trunc, _ = env.step(env.action_space.sample())
+            if term or trunc:
+                env.reset()
+        env.close()
+
+    def env_steps():
+        env = make()
+        td = env.reset()
+        for _ in range(frames):
+            _, td = env.step_and_maybe_reset(env.rand_action(td))
+        env.close()
+
+    def collector(exclude: bool):
+        env = make()
+        if exclude:
+            env = TransformedEnv(env, ExcludeTransform("pixels", "depth"), auto_unwrap=False)
+        c = Collector(env, None, frames_per_batch=4, total_frames=frames, track_traj_ids=False)
+        for _ in c:
+            pass
+        c.shutdown()
+
+    return {"gym_step": timed(gym_steps), "env_step_and_maybe_reset": timed(env_steps),
+            "collector_4": timed(lambda: collector(False)),
+            "collector_4_no_images": timed(lambda: collector(True))}
+
+
+def update_ms(cfg, updates: int) -> dict:
+    """Milliseconds per gradient step on one 32-row batch of real transitions: the recipe's
+    ``DQNLoss`` with Adam single-tensor / ``foreach`` / ``fused``, and plain PyTorch."""
+    import warnings
+
+    import recipe_utils as ru
+    import torch
+    import train as train_recipe
+
+    from torchrl_causal.pretrained.policy import FEATURE_SCALES
+
+    variant = ru.VARIANTS[cfg.variant]
+    env = train_recipe.build_env(cfg, variant, "thesis", "cpu")
+    actor, _, _ = train_recipe.build_agent(cfg, variant, env, "cpu")
+    # the loop owns the target sync, not the loss: TorchRL's warning about it is noise here
+    warnings.filterwarnings("ignore", message="No target network updater")
+    loss, optim = train_recipe.build_loss(cfg, actor, env)
+    n = int(cfg.buffer.batch_size)
+    batch = env.rollout(n, break_when_any_done=False).exclude(
+        "pixels", "depth", ("next", "pixels"), ("next", "depth"))
+    env.close()
+    params = [p for p in loss.parameters() if p.requires_grad]
+    group = optim.param_groups[0]
+    clip = float(cfg.loss.max_grad_norm)
+
+    def timed(step):
+        for _ in range(20):
+            step()
+        t0 = time.perf_counter()
+        for _ in range(updates):
+            step()
+        return round((time.perf_counter() - t0) / updates * 1e3, 3)
+
+    out = {}
+    for name, kw in (("single", {"foreach": False}), ("foreach", {"foreach": True}),
+                     ("fused", {"fused": True})):
+        opt = torch.optim.Adam(params, lr=group["lr"], eps=group["eps"], **kw)
+
+        def step(opt=opt):
+            value = loss(batch)["loss"]
+            opt.zero_grad()
+            value.backward()
+            torch.nn.utils.clip_grad_norm_(params, clip)
+            opt.step()
+        out[f"dqnloss_adam_{name}"] = timed(step)
+
+    def mlp():
+        return torch.nn.Sequential(torch.nn.Linear(9, 256), torch.nn.ReLU(),
+                                   torch.nn.Linear(256, 256), torch.nn.ReLU(),
+                                   torch.nn.Linear(256, 8))
+    net, target = mlp(), mlp()
+    opt = torch.optim.Adam(net.parameters(), lr=group["lr"], eps=group["eps"], foreach=False)
+    scale = torch.tensor(FEATURE_SCALES["causal_features"], dtype=torch.float32)
+    x, x2 = batch["causal_features"] / scale, batch["next", "causal_features"] / scale
+    a, r = batch["action"].reshape(-1, 1), batch["next", "reward"].reshape(-1)
+    d = batch["next", "terminated"].reshape(-1).float()
+    gamma = float(cfg.loss.gamma)
+
+    def plain():
+        with torch.no_grad():
+            y = r + gamma * (1 - d) * target(x2).max(1).values
+        value = torch.nn.functional.smooth_l1_loss(net(x).gather(1, a).squeeze(1), y)
+        opt.zero_grad()
+        value.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), clip)
+        opt.step()
+    out["plain_torch_adam_single"] = timed(plain)
+    return out
+
+
 def first_success(evals) -> int | None:
     return next((f for f, s in evals if s > 0), None)
 
@@ -218,6 +343,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--speed-frames", type=int, default=3000,
                    help="frames per speed run (no evaluation); 0 skips the speed figure")
     p.add_argument("--repeats", type=int, default=2, help="speed runs per library, alternated")
+    p.add_argument("--overheads", type=int, default=0,
+                   help="frames per stepping run of the overheads figures (0: skip them)")
     p.add_argument("--override", action="append", default=[],
                    help="a recipe override for every run of both libraries (repeatable), "
                         "e.g. loss.learning_starts=200")
@@ -225,8 +352,9 @@ def main(argv=None) -> list[dict]:
     for name in ("frames", "eval_every", "eval_episodes", "repeats"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
-    if a.speed_frames < 0:
-        p.error(f"--speed-frames must be >= 0, got {a.speed_frames}")
+    for name in ("speed_frames", "overheads"):
+        if getattr(a, name) < 0:
+            p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(a, name)}")
     try:
         import stable_baselines3  # noqa: F401
     except ImportError:
@@ -254,6 +382,17 @@ def main(argv=None) -> list[dict]:
                          "sb3": [round(v, 1) for v in fps["sb3"]],
                          "dqnloop_median": round(ours, 1), "sb3_median": round(theirs, 1),
                          "ratio_dqnloop_over_sb3": round(ours / theirs, 3)})
+            print(json.dumps(rows[-1]), flush=True)
+        if a.overheads:
+            cfg = recipe_config(max(a.overheads, 2000), 0, 0, 1, Path(tmp) / "overheads",
+                                a.override)
+            runs = [stepping_fps(cfg, a.overheads) for _ in range(a.repeats)]
+            rows.append({"bench": "vs_sb3", "figure": "stepping", "frames": a.overheads,
+                         "unit": "frames/s", **{k: [r[k] for r in runs] for k in runs[0]}})
+            print(json.dumps(rows[-1]), flush=True)
+            rows.append({"bench": "vs_sb3", "figure": "update", "unit": "ms",
+                         "updates": max(1, a.overheads // 4), "batch": int(cfg.buffer.batch_size),
+                         **update_ms(cfg, max(1, a.overheads // 4))})
             print(json.dumps(rows[-1]), flush=True)
         results = {"dqnloop": [], "sb3": []}
         for seed in a.seeds:

@@ -49,3 +49,19 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
         assert len(r["final_success"]) == 1 and 0.0 <= r["final_success"][0] <= 1.0
     with pytest.raises(SystemExit):
         _bench().main(["--frames", "0"])
+
+
+def test_overheads_figures(tmp_path, monkeypatch):
+    """--overheads times the stepping paths and the update paths on the recipe's env."""
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    rows = _bench().main(["--seeds", "--speed-frames", "0", "--overheads", "40",
+                          "--repeats", "1", "--override", "env.max_steps=15"])
+    stepping, update = rows
+    assert stepping["figure"] == "stepping" and update["figure"] == "update"
+    for key in ("gym_step", "env_step_and_maybe_reset", "collector_4", "collector_4_no_images"):
+        assert len(stepping[key]) == 1 and stepping[key][0] > 0
+    for key in ("dqnloss_adam_single", "dqnloss_adam_foreach", "dqnloss_adam_fused",
+                "plain_torch_adam_single"):
+        assert 0 < update[key] < 1000
+    with pytest.raises(SystemExit):
+        _bench().main(["--overheads", "-1"])
