@@ -21,7 +21,8 @@
 #   GRID_DEVICE  device of the grid's runs [cuda]; cpu runs one job per core on the CPUs
 #   GRID_PARTS   ';'-separated reproduce.py selections launched side by side into one root,
 #                each with its own --jobs [--groups variants --jobs <cores - 1>], e.g.
-#                "--variants cbn_defined --jobs 3;--groups k_sweep --jobs 4"
+#                "--variants cbn_defined --jobs 3;--groups k_sweep --jobs 4"; a part may end
+#                with its own hydra overrides ("... --jobs 1 -- env.max_steps=30")
 #   GRID_RECORDS a folder of finished runs' records (reproduce.py --export) copied into the
 #                root first, so those runs are not trained again [none]
 set -u

@@ -715,7 +715,9 @@ def main(argv=None) -> dict:
         raise ValueError(f"Invalid option --k={bad_k}: expected integers > 0")
     root = (args.root or Path("outputs") / f"reproduce_{args.mode}").resolve()
     ru.check_writable(root)
-    extra = list(args.overrides)
+    # a second '--' (a wrapper that adds its own overrides after the caller's, as
+    # benchmarks/gpu_box.sh does) reaches here as an override: it separates, nothing more
+    extra = [o for o in args.overrides if o != "--"]
     if args.frames is not None:
         extra.append(f"collector.total_frames={args.frames}")
     overrides = merge_overrides(MODES[args.mode]["overrides"], extra)
