@@ -281,3 +281,14 @@ def test_root_of_another_config_is_refused_before_any_job(tmp_path, capsys):
         reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_p",
                         "--groups", "variants", "--dry-run", "--root", str(tmp_path),
                         "preset=thesis"])
+
+
+def test_a_second_separator_among_the_overrides_is_dropped(tmp_path, capsys):
+    """A wrapper adding its overrides after the caller's (benchmarks/gpu_box.sh) passes a
+    second '--': it separates, it is not an override for hydra."""
+    assert reproduce.main(["--mode", "reduced", "--seeds", "1", "--groups", "k_sweep",
+                           "--k", "100", "--dry-run", "--root", str(tmp_path), "--",
+                           "env.max_steps=30", "--", "threads=1"]) == {}
+    printed = capsys.readouterr().out
+    assert "env.max_steps=30" in printed and "threads=1" in printed
+    assert " -- " not in printed.replace("' -- '", "")
