@@ -84,7 +84,9 @@ if [[ $STAGES == *4* ]] && [ "$TOTAL" -gt 0 ] && [ "$SECS" -gt 30 ]; then
     set -- ${PART[$i]}
     while [ $# -gt 0 ]; do [ "$1" = --jobs ] && JOBS=$(( JOBS + $2 )); shift; done
     # shellcheck disable=SC2086
-    timeout --signal=INT --kill-after=20 "$SECS" $PY recipes/reproduce.py --mode full --seeds 5 \
+    # each part in its own process group (setsid), so that what it leaves running (the
+    # launcher's worker processes) is stopped below without touching other jobs
+    setsid timeout --signal=INT --kill-after=20 "$SECS" $PY recipes/reproduce.py --mode full --seeds 5 \
         --root "$ROOT" --no-estimate ${PART[$i]} \
         -- device="$GRID_DEVICE" threads=1 progress=false outputs.videos=0 \
         > "$OUT/protocol_$i.log" 2>&1 &
@@ -93,7 +95,7 @@ if [[ $STAGES == *4* ]] && [ "$TOTAL" -gt 0 ] && [ "$SECS" -gt 30 ]; then
   RC=0
   for p in "${PIDS[@]}"; do wait "$p" || RC=$?; done
   END=$(date +%s)
-  pkill -f "joblib.externals.loky" 2>/dev/null; pkill -f "recipes/train.py" 2>/dev/null
+  for p in "${PIDS[@]}"; do kill -- -"$p" 2>/dev/null; done
   DONE=$(cd "$ROOT" 2>/dev/null && find . -name summary.json -newer .grid_start -printf '%h\n' | sort)
   N=$(echo "$DONE" | grep -c . )
   echo "protocol rc=$RC: $N runs finished in $(( END - START )) s on $JOBS $GRID_DEVICE jobs"

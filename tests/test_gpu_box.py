@@ -29,8 +29,18 @@ def _box(out: Path, root: Path, parts: str, records: Path | None = None):
 
 
 def test_grid_parts_side_by_side_and_seeded_records(tmp_path):
+    # another grid's processes on the same machine (named as joblib's workers and the
+    # recipe are): the box's clean-up stops its own process groups only
+    bystanders = [subprocess.Popen(["bash", "-c", f"exec -a '{name}' sleep 300"])
+                  for name in ("python -m joblib.externals.loky.backend.popen_loky_posix",
+                               "python recipes/train.py -m")]
     parts = ";".join(f"--variants {v} {TINY}" for v in ("dqn_features_v2eps", "dqn_features"))
-    first, log = _box(tmp_path / "out1", tmp_path / "root1", parts)
+    try:
+        first, log = _box(tmp_path / "out1", tmp_path / "root1", parts)
+        assert all(b.poll() is None for b in bystanders), "the clean-up killed other jobs"
+    finally:
+        for b in bystanders:
+            b.kill()
     assert "2 runs finished" in log and "on 2 cpu jobs" in log
     assert first["rc"] == 0 and first["jobs"] == 2 and first["started"] == []
     assert sorted(r["run"] for r in first["runs"]) == [
