@@ -21,8 +21,11 @@ so that episodes differ and the success rates' intervals mean something.
 
 Writes to ``--out`` (default ``<run>/tello_<emulator|host>``): ``episodes.csv``
 (the training loop's columns that apply: episode, frames, reward, length,
-success, crash, out_of_bounds; plus ``success_sim``, the emulator's ground truth,
-and ``battery``), ``onboard.mp4`` (the decoded onboard video, H.264 via PyAV)
+success, crash, out_of_bounds; plus ``success_sim``, ``closest_sim_m`` and
+``land_offset_sim_m``, the emulator's ground truth, ``battery``, and
+``goal_distance_m`` / ``goal_angle_deg``, the last step's measured range and bearing
+to the goal box: for a "reached" episode, the reading the arrival rule fired on),
+``onboard.mp4`` (the decoded onboard video, H.264 via PyAV)
 and ``summary.json`` (success rates with 95 % Wilson intervals; with
 ``--compare-sim N`` also the same policy's greedy episodes in ``DroneNavEnv``).
 """
@@ -51,7 +54,8 @@ from torchrl_causal.envs.control import TELLO_MOVE_NOISE as NOISE  # noqa: E402
 
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
-               "success_sim", "closest_sim_m", "land_offset_sim_m", "battery"]
+               "success_sim", "closest_sim_m", "land_offset_sim_m", "battery",
+               "goal_distance_m", "goal_angle_deg"]
 
 
 def parse_args(argv=None):
@@ -353,7 +357,11 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
                                      if gt and math.isfinite(gt["closest_goal_m"]) else ""),
                    "land_offset_sim_m": (" ".join(f"{v:+.3f}" for v in gt["land_offset_m"])
                                          if gt and gt["land_offset_m"] else ""),
-                   "battery": float(nxt["battery"])}
+                   "battery": float(nxt["battery"]),
+                   # the last step's measured range and bearing to the goal box (0 when not
+                   # in sight): for a "reached" episode, the reading the rule fired on
+                   "goal_distance_m": round(float(nxt["goal_distance"]), 3),
+                   "goal_angle_deg": round(float(nxt["goal_angle"]), 1)}
             csv.write(row)
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -48,6 +48,11 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert ((rows["closest_sim_m"] <= 0.2) == (rows["success_sim"] == 1)).all(), rows
     offsets = rows["land_offset_sim_m"].str.split().apply(lambda v: [float(x) for x in v])
     assert (offsets.apply(len) == 3).all()
+    # the reading each "reached" fired on: within the rule's range (or a board held out of
+    # sight by the arrival head, 0 m)
+    fired = rows[rows["success"] == 1]
+    assert len(fired) and (fired["goal_distance_m"] <= summary["reach_rule"]["max_distance"]).all()
+    assert (fired["goal_angle_deg"].abs() <= summary["reach_rule"]["max_angle"]).all()
     with av.open(str(out / "onboard.mp4")) as c:
         frames = sum(1 for _ in c.decode(video=0))
     assert frames >= rows["length"].sum()
