@@ -73,8 +73,9 @@ SECS=$(( TOTAL - 45 - ($(date +%s) - T0) ))
 if [[ $STAGES == *4* ]] && [ "$TOTAL" -gt 0 ] && [ "$SECS" -gt 30 ]; then
   stage "4 protocol grid for ${SECS} s on $GRID_DEVICE"
   PARTS=${GRID_PARTS:-"--groups variants --jobs $(( $(nproc) - 1 ))"}
-  if [ -n "${GRID_RECORDS:-}" ]; then mkdir -p "$ROOT" && cp -r "$GRID_RECORDS"/. "$ROOT"/; fi
-  mkdir -p "$ROOT" && touch "$ROOT/.grid_start"  # runs that finish after this were trained here
+  mkdir -p "$ROOT"
+  if [ -n "${GRID_RECORDS:-}" ]; then cp -r "$GRID_RECORDS"/. "$ROOT"/; fi
+  touch "$ROOT/.grid_start"  # runs that finish after this were trained here
   JOBS=0
   START=$(date +%s)
   IFS=';' read -ra PART <<< "$PARTS"
@@ -83,9 +84,9 @@ if [[ $STAGES == *4* ]] && [ "$TOTAL" -gt 0 ] && [ "$SECS" -gt 30 ]; then
     # shellcheck disable=SC2086
     set -- ${PART[$i]}
     while [ $# -gt 0 ]; do [ "$1" = --jobs ] && JOBS=$(( JOBS + $2 )); shift; done
-    # shellcheck disable=SC2086
     # each part in its own process group (setsid), so that what it leaves running (the
     # launcher's worker processes) is stopped below without touching other jobs
+    # shellcheck disable=SC2086
     setsid timeout --signal=INT --kill-after=20 "$SECS" $PY recipes/reproduce.py --mode full --seeds 5 \
         --root "$ROOT" --no-estimate ${PART[$i]} \
         -- device="$GRID_DEVICE" threads=1 progress=false outputs.videos=0 \

@@ -384,8 +384,7 @@ def main(argv=None) -> list[dict]:
                          "ratio_dqnloop_over_sb3": round(ours / theirs, 3)})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
-            cfg = recipe_config(max(a.overheads, 2000), 0, 0, 1, Path(tmp) / "overheads",
-                                a.override)
+            cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)
             runs = [stepping_fps(cfg, a.overheads) for _ in range(a.repeats)]
             rows.append({"bench": "vs_sb3", "figure": "stepping", "frames": a.overheads,
                          "unit": "frames/s", **{k: [r[k] for r in runs] for k in runs[0]}})
