@@ -11,6 +11,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from torchrl_causal.envs.layouts import RandomLayoutGenerator
@@ -162,6 +163,37 @@ def test_goal_distance_draws_close_ups():
     assert cover(close) > 3 * cover(usual)
 
 
+def test_obstacle_close_ups():
+    """``obstacle_frac`` draws close-ups of obstacles (the detector's hard negatives): the
+    nearest obstacle is within the asked range, it fills much of the view, and the default
+    (0) leaves every other view as it was."""
+    from torchrl_causal.perception.dataset import _surface_distance
+
+    opts = dict(seed=7, image_size=(48, 64), goal_absent_frac=0.0)
+    views = list(render_views("train", 24, obstacle_frac=1.0, obstacle_distance=(0.3, 0.8), **opts))
+    assert {v.kind for v in views} == {"obstacle"}
+    near = []
+    for v in views:
+        lay = _layout(v)
+        d = min(_surface_distance(o, v.pose[0], v.pose[1]) for o in lay.obstacles)
+        assert d <= 0.8 + 1e-6, (v.index, d)
+        near.append(float(np.mean(v.depth < 1.5)))
+    # looking at the obstacle: most views are mostly near pixels; the goal, when it shows
+    # beside the obstacle, is a small part of the view
+    assert np.median(near) > 0.4, near
+    assert np.median([v.goal_pixels / (48 * 64) for v in views]) < 0.02
+    # the usual views: the board is mostly far, the median view has few pixels within 1.5 m
+    usual = list(render_views("train", 24, **opts))
+    assert np.median([np.mean(v.depth < 1.5) for v in usual]) < np.median(near) / 2
+    # obstacle_frac=0 is the historical mix, view for view
+    same = list(render_views("train", 24, obstacle_frac=0.0, **opts))
+    for x, y in zip(usual, same):
+        np.testing.assert_array_equal(x.rgb, y.rgb)
+    # a mix draws all four kinds
+    mix = list(render_views("train", 40, seed=1, image_size=48, obstacle_frac=0.3))
+    assert {v.kind for v in mix} == {"goal", "start", "absent", "obstacle"}
+
+
 def test_deterministic_and_start_offset():
     a = list(render_views("val", 6, seed=3, image_size=48, views_per_layout=3))
     b = list(render_views("val", 6, seed=3, image_size=48, views_per_layout=3))
@@ -240,7 +272,12 @@ def test_evaluate_detector_ground_truth_is_perfect():
     m = evaluate_detector(SimGoalDetector(min_pixels=math.ceil(DEFAULT_MIN_FRACTION * 60 * 80)), views)
     assert m["n_views"] == 12 and m["n_positives"] == sum(v.box is not None for v in views) > 0
     assert m["precision"] == 1.0 and m["recall"] == 1.0 and m["map50"] == pytest.approx(1.0, abs=0.01)
-    assert m["image_accuracy"] == 1.0
+    assert m["image_accuracy"] == 1.0 and m["false_sight_rate"] == 0.0
+    # a detector that always sees the goal everywhere: every view without a box is a false sight
+    always = lambda px, depth, **kw: (  # noqa: E731
+        torch.tensor([[0.0, 0.0, 80.0, 60.0]]).expand(len(px), 1, 4), torch.ones(len(px), 1))
+    m = evaluate_detector(always, views)
+    assert m["false_sight_rate"] == 1.0 and m["n_views"] > m["n_positives"]
 
 
 @pytest.mark.parametrize(
@@ -257,6 +294,10 @@ def test_evaluate_detector_ground_truth_is_perfect():
         (dict(split="train", n=1, seed=0, goal_distance=(0.0, 1.0)), "goal_distance"),
         (dict(split="train", n=1, seed=0, goal_distance="near"), "goal_distance"),
         (dict(split="train", n=1, seed=0, goal_size=(0.1, 0.8)), "goal_size"),
+        (dict(split="train", n=1, seed=0, obstacle_frac=1.2), "obstacle_frac"),
+        (dict(split="train", n=1, seed=0, obstacle_frac=0.9), "goal_absent_frac \\+ obstacle_frac"),
+        (dict(split="train", n=1, seed=0, obstacle_frac=0.5, obstacle_distance=(0.1, 1.0)),
+         "obstacle_distance"),
     ],
 )
 def test_bad_options(kwargs, match):

@@ -20,9 +20,12 @@ env shows an agent. Per view:
 be train layouts (see :mod:`~torchrl_causal.envs.layouts`). ``views_per_layout``
 consecutive views share a layout.
 
-**Views.** Three kinds, drawn per view: ``"absent"`` (probability
+**Views.** Four kinds, drawn per view: ``"absent"`` (probability
 ``goal_absent_frac``; a random collision-free pose looking away from the goal),
-``"start"`` (the rest's ``start_frac``: around the layout's start pose looking
+``"obstacle"`` (probability ``obstacle_frac``, default 0; a close-up of an
+obstacle, 0.25-1.5 m from its surface (``obstacle_distance``), looking at it:
+the views where a pillar fills the frame, the detector's hard negatives and
+MonoDepth's near obstacles), ``"start"`` (the rest's ``start_frac``: around the layout's start pose looking
 towards the goal, where the generator puts an obstacle across the line of
 sight, so the goal is often partly or fully hidden), and ``"goal"`` (a pose in
 front of the board at a log-uniform distance of 0.5-9 m (``goal_distance``), up to 70 deg off its
@@ -85,7 +88,7 @@ DATASET_SPLITS: tuple[str, ...] = ("train", "val", "test")
 #: Smallest goal share of the image that counts as "goal visible" (20 px at 84 x 84).
 DEFAULT_MIN_FRACTION: float = 0.0028
 #: View kinds (see the module docstring).
-VIEW_KINDS: tuple[str, ...] = ("goal", "start", "absent")
+VIEW_KINDS: tuple[str, ...] = ("goal", "start", "absent", "obstacle")
 
 _SPLIT_ID = {"train": 0, "val": 1, "test": 2}
 _VAL_EVERY = 5
@@ -193,14 +196,44 @@ def _inside(layout, x, y, margin=0.15) -> bool:
     return xmin + margin <= x <= xmax - margin and ymin + margin <= y <= ymax - margin
 
 
-def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0)):
+def _surface_distance(o, x: float, y: float) -> float:
+    """Horizontal distance (m) from ``(x, y)`` to obstacle ``o``'s footprint."""
+    dx, dy = x - o.center[0], y - o.center[1]
+    if o.shape == "cylinder":
+        return max(math.hypot(dx, dy) - o.half_size[0], 0.0)
+    c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
+    lx = abs(c * dx + s * dy) - o.half_size[0]
+    ly = abs(-s * dx + c * dy) - o.half_size[1]
+    return math.hypot(max(lx, 0.0), max(ly, 0.0))
+
+
+def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0),
+               obstacle_distance=(0.25, 1.5)):
     """``(x, y, z, yaw_deg)`` for a view of ``kind`` (falls back to the start pose)."""
     g = np.asarray(layout.goal_center, dtype=np.float64)
     xmin, ymin, xmax, ymax = layout.arena
     ztop = min(layout.height - 0.15, 2.6)
     half = hfov_deg / 2.0
+    if kind == "obstacle" and not layout.obstacles:
+        kind = "absent"
     for _ in range(200):
-        if kind == "goal":
+        if kind == "obstacle":
+            o = layout.obstacles[int(rng.integers(len(layout.obstacles)))]
+            d = math.exp(rng.uniform(math.log(obstacle_distance[0]),
+                                     math.log(obstacle_distance[1])))
+            phi = rng.uniform(-math.pi, math.pi)
+            # walk out along phi from the centre until the footprint is d away
+            r = d + (o.footprint_radius() if o.shape == "box" else o.half_size[0])
+            for _ in range(8):
+                x, y = o.center[0] + r * math.cos(phi), o.center[1] + r * math.sin(phi)
+                r += d - _surface_distance(o, x, y)
+            top = o.center[2] + o.half_size[2]
+            z = rng.uniform(0.3, max(min(top, ztop), 0.35))
+            bearing = math.degrees(math.atan2(o.center[1] - y, o.center[0] - x))
+            yaw = bearing + rng.uniform(-0.5, 0.5) * half
+            if not _inside(layout, x, y, margin=0.1):
+                continue
+        elif kind == "goal":
             d = math.exp(rng.uniform(math.log(goal_distance[0]), math.log(goal_distance[1])))
             phi = math.radians(layout.goal_yaw_deg + rng.uniform(-70.0, 70.0))
             x = g[0] + math.cos(phi) * d
@@ -308,6 +341,8 @@ def render_views(
     goal_distance: Sequence[float] = (0.5, 9.0),
     video_path=None,
     goal_size: Sequence[float] | None = None,
+    obstacle_frac: float = 0.0,
+    obstacle_distance: Sequence[float] = (0.25, 1.5),
 ) -> Iterator[View]:
     """Renders ``n`` views of ``split``, lazily (see the module docstring).
 
@@ -342,6 +377,12 @@ def render_views(
             board of a real flight) instead of the layouts' drawn sizes; the
             layouts then differ from the default ones (see
             :class:`~torchrl_causal.envs.layouts.RandomLayoutGenerator`).
+        obstacle_frac: share of views drawn as obstacle close-ups (kind
+            ``"obstacle"``; drawn after ``goal_absent_frac``, so the default 0
+            leaves every other view as it was). Their box is the goal's as the
+            segmentation sees it, usually none.
+        obstacle_distance: ``(low, high)`` horizontal distance (m) of
+            ``"obstacle"`` views from the obstacle's surface, log-uniform.
 
     Yields:
         :class:`View` objects.
@@ -377,6 +418,17 @@ def render_views(
     if not 0 < lo < hi:
         raise ValueError(f"goal_distance must be (low, high) with 0 < low < high, "
                          f"got {goal_distance!r}")
+    obstacle_frac = _check_frac("obstacle_frac", obstacle_frac)
+    if goal_absent_frac + obstacle_frac > 1.0:
+        raise ValueError(f"goal_absent_frac + obstacle_frac must be <= 1, got "
+                         f"{goal_absent_frac} + {obstacle_frac}")
+    try:
+        olo, ohi = (float(v) for v in obstacle_distance)
+    except (TypeError, ValueError):
+        olo = ohi = float("nan")
+    if not 0.2 <= olo < ohi:
+        raise ValueError(f"obstacle_distance must be (low, high) with 0.2 <= low < high "
+                         f"(the drone's clearance is 0.18 m), got {obstacle_distance!r}")
     from ..envs.layouts import check_goal_size
 
     goal_size = check_goal_size(goal_size)
@@ -393,13 +445,14 @@ def render_views(
         split, n, seed, (h, w), layout_seed, goal_absent_frac, start_frac, views_per_layout,
         min_fraction, float(fov_deg), float(max_depth), max_tilt_deg,
         bool(randomize_appearance), start, (lo, hi), video_path, goal_size,
+        obstacle_frac, (olo, ohi),
     )
 
 
 def _render(
     split, n, seed, image_size, layout_seed, absent_frac, start_frac, per_layout,
     min_fraction, fov_deg, max_depth, max_tilt, randomize, start, goal_distance=(0.5, 9.0),
-    video_path=None, goal_size=None,
+    video_path=None, goal_size=None, obstacle_frac=0.0, obstacle_distance=(0.25, 1.5),
 ) -> Iterator[View]:
     from ..envs.drone import DroneNavEnv
     from ..envs.scene import SceneRenderer
@@ -447,11 +500,14 @@ def _render(
             u = rng.uniform()
             if u < absent_frac:
                 kind = "absent"
+            elif u < absent_frac + obstacle_frac:
+                kind = "obstacle"
             elif rng.uniform() < start_frac:
                 kind = "start"
             else:
                 kind = "goal"
-            x, y, z, yaw = _draw_pose(rng, env.layout, kind, env.hfov_deg, goal_distance)
+            x, y, z, yaw = _draw_pose(rng, env.layout, kind, env.hfov_deg, goal_distance,
+                                      obstacle_distance)
             pitch, roll = rng.uniform(-max_tilt, max_tilt, size=2) if max_tilt > 0 else (0.0, 0.0)
             if randomize:
                 appearance.apply(rng)
@@ -711,7 +767,10 @@ def evaluate_detector(
     score); ``precision_best_f1`` / ``recall_best_f1`` / ``conf_best_f1`` are the
     point of the precision/recall curve with the best F1 (what ultralytics
     prints). ``image_accuracy`` is the share of views where "best score > conf"
-    agrees with "has a box" (the ``goal_in_sight`` decision).
+    agrees with "has a box" (the ``goal_in_sight`` decision);
+    ``false_sight_rate`` is the share of views *without* a box where some
+    detection scores above ``conf_threshold`` (a goal seen where there is none:
+    on obstacle close-ups, the arrival rule's false "reached").
 
     Args:
         detector: a ``GoalDetector`` (called with ``pixels uint8 [B, H, W, 3]``,
@@ -727,7 +786,8 @@ def evaluate_detector(
     Returns:
         dict with ``precision``, ``recall``, ``map50``, ``f1``,
         ``precision_best_f1``, ``recall_best_f1``, ``conf_best_f1``,
-        ``image_accuracy``, ``n_views``, ``n_positives``, ``ms_per_frame``.
+        ``image_accuracy``, ``false_sight_rate``, ``n_views``, ``n_positives``,
+        ``ms_per_frame``.
 
     Example:
         >>> from torchrl_causal.perception.goal import SimGoalDetector
@@ -751,6 +811,7 @@ def evaluate_detector(
     tp_at = fp_at = 0
     agree = 0
     npos = 0
+    false_sight = 0
     seconds = 0.0
     for b0 in range(0, len(views), batch_size):
         chunk = views[b0 : b0 + batch_size]
@@ -785,6 +846,7 @@ def evaluate_detector(
             tp_at += int(tp[above].sum())
             fp_at += int(above.sum() - tp[above].sum())
             agree += int(bool(above.any()) == (v.box is not None))
+            false_sight += int(v.box is None and bool(above.any()))
     precision = tp_at / (tp_at + fp_at) if tp_at + fp_at else float("nan")
     recall = tp_at / npos if npos else float("nan")
     f1 = (
@@ -813,6 +875,7 @@ def evaluate_detector(
         "recall_best_f1": r_best,
         "conf_best_f1": c_best,
         "image_accuracy": agree / n if n else float("nan"),
+        "false_sight_rate": false_sight / (n - npos) if n > npos else float("nan"),
         "n_views": n,
         "n_positives": npos,
         "conf_threshold": float(conf_threshold),
@@ -846,9 +909,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--goal-size", type=float, nargs=2, default=None, metavar=("W", "H"),
                    help="every goal board this size (m), e.g. 1.0 0.8 for the thesis board "
                         "(default: the layouts' drawn sizes, 0.7-1.2 x 0.6-0.9 m)")
+    p.add_argument("--obstacle-frac", type=float, default=0.0,
+                   help="share of views drawn as obstacle close-ups (hard negatives for the "
+                        "detector, near obstacles for MonoDepth)")
+    p.add_argument("--obstacle-distance", type=float, nargs=2, default=(0.25, 1.5),
+                   metavar=("LOW", "HIGH"),
+                   help="distance range (m) of obstacle close-ups from the obstacle's surface")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     extra = {}
+    if a.obstacle_frac:
+        extra["obstacle_frac"] = a.obstacle_frac
+        extra["obstacle_distance"] = tuple(a.obstacle_distance)
     if a.goal_size is not None:
         extra["goal_size"] = tuple(a.goal_size)
     if a.video_path:
