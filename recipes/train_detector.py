@@ -364,6 +364,9 @@ def main(argv=None):
         prev = Path(a.init).parents[1] / "torchrl_causal_metrics.json"
         if prev.is_file():
             sidecar["init_command"] = json.loads(prev.read_text()).get("command")
+        init_sidecar = Path(a.init).with_suffix(".json")
+        if init_sidecar.is_file():  # the chain of fine-tunes stays on record, stage by stage
+            sidecar["init_sidecar"] = json.loads(init_sidecar.read_text())
     try:
         import ultralytics
 

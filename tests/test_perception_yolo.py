@@ -137,6 +137,14 @@ def test_tiny_offline_training_end_to_end(tmp_path):
     assert det.imgsz == 96
     boxes, scores = det(torch.zeros(2, 72, 96, 3, dtype=torch.uint8))
     assert boxes.shape == (2, 5, 4)
+    # a fine-tune of these weights (--init) keeps their sidecar on record, stage by stage
+    # (--finalize: the run's weights, no training)
+    out2 = tmp_path / "w2" / "goal.pt"
+    cmd2 = [c if c != str(out) else str(out2) for c in cmd] + ["--init", str(out), "--finalize"]
+    r = subprocess.run(cmd2, env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    side2 = json.loads(out2.with_suffix(".json").read_text())
+    assert side2["init"] == str(out) and side2["init_sidecar"]["command"] == side["command"]
 
 
 def test_extra_data_that_is_not_a_dataset_is_named_before_training(tmp_path, capsys):
