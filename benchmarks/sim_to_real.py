@@ -5,6 +5,7 @@
     python benchmarks/sim_to_real.py                          # thesis policy, seeds 7 and 11
     python benchmarks/sim_to_real.py --policies thesis generalist --episodes 50
     python benchmarks/sim_to_real.py --episodes 2 --seeds 0   # a smoke run
+    python benchmarks/sim_to_real.py --detector-weights W.pt  # candidate weights, same flights
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
@@ -22,6 +23,9 @@ generalist held-out random layouts. Prints one JSON object per figure:
   ``DroneNavEnv``'s interval, agreement >= 0.95, false "reached" rarer than
   1 in 20.
 
+``--detector-weights`` / ``--depth-weights`` fly candidate perception weights
+(a ``recipes/train_detector.py`` or ``recipes/train_depth.py`` run) in place of
+the shipped ones; each seed's object names the weights it flew.
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
 """
@@ -50,11 +54,18 @@ from torchrl_causal.pretrained import policy_dir  # noqa: E402
 TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reached_max": 0.05}
 
 
-def fly(policy: str, seed: int, episodes: int, out: Path) -> dict:
-    """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule."""
+def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None) -> dict:
+    """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
+
+    ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
+    perception weights in place of the shipped ones.
+    """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
             "--out", str(out)]
+    for key, flag in (("detector", "--detector-weights"), ("depth", "--depth-weights")):
+        if (weights or {}).get(key) is not None:
+            argv += [flag, str(weights[key])]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.main(argv)
 
@@ -67,6 +78,8 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "agreement": s["agreement"], "false_reached": s["false_reached"],
             "missed_reach": s["missed_reach"], "crashes": s["crashes"],
             "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],
+            "detector_weights": s.get("detector_weights", "shipped"),
+            "depth_weights": s.get("depth_weights", "shipped"),
             "wall_s": s.get("wall_s")}
 
 
@@ -103,9 +116,18 @@ def main(argv=None) -> list[dict]:
                    help="emulator seeds: each flies its own noise draws (and layouts)")
     p.add_argument("--episodes", type=int, default=50, help="episodes per seed")
     p.add_argument("--out", type=Path, default=ROOT / "outputs" / "sim_to_real")
+    p.add_argument("--detector-weights", type=Path, default=None,
+                   help="candidate YOLO weights to fly instead of the shipped ones")
+    p.add_argument("--depth-weights", type=Path, default=None,
+                   help="candidate MonoDepth weights to fly instead of the shipped ones")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
+    for flag, path in (("--detector-weights", a.detector_weights),
+                       ("--depth-weights", a.depth_weights)):
+        if path is not None and not path.is_file():
+            p.error(f"{flag}: {str(path)!r} is not a file")
+    weights = {"detector": a.detector_weights, "depth": a.depth_weights}
     for name in a.policies:
         try:
             policy_dir(name)
@@ -115,7 +137,7 @@ def main(argv=None) -> list[dict]:
     for name in a.policies:
         per_seed = []
         for seed in a.seeds:
-            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}")
+            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights)
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

@@ -214,8 +214,12 @@ def test_reach_offset_takes_the_emulated_layouts_board():
 def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     """benchmarks/sim_to_real.py: one JSON object per seed and one pooled, with the targets;
     fly_tello's own lines stay off stdout."""
-    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sim_to_real.py"),
-                        "--episodes", "2", "--seeds", "3", "--out", str(tmp_path)],
+    from torchrl_causal.perception.yolo import DEFAULT_WEIGHTS
+
+    bench = [sys.executable, str(ROOT / "benchmarks" / "sim_to_real.py")]
+    # candidate weights fly in place of the shipped ones (here the shipped file, by path)
+    r = subprocess.run(bench + ["--episodes", "2", "--seeds", "3", "--out", str(tmp_path),
+                                "--detector-weights", str(DEFAULT_WEIGHTS)],
                        capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-3000:]
     figs = [json.loads(line) for line in r.stdout.splitlines()]
@@ -227,3 +231,8 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     assert set(pooled["targets"]) == {"inside_dronenav_ci", "agreement", "false_reached",
                                       "success"}
     assert (tmp_path / "thesis_seed3" / "episodes.csv").is_file()
+    assert one["detector_weights"] == str(DEFAULT_WEIGHTS) and one["depth_weights"] == "shipped"
+    # a candidate that is not there is named before anything flies
+    r = subprocess.run(bench + ["--depth-weights", str(tmp_path / "nope.pt")],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2 and "--depth-weights" in r.stderr and "nope.pt" in r.stderr
