@@ -57,11 +57,13 @@ arrival-weights: venv
 	$(PY) recipes/train_arrival.py --out torchrl_causal/perception/weights/arrival.pt \
 	    --train 6000 --test 600 --epochs 30 --threads 1 --no-progress
 
-# make detector-weights: the shipped YOLOv8n goal detector (about 1.5 hours on one core): the
+# make detector-weights: the shipped YOLOv8n goal detector (about 2 hours on one core): the
 # base network on plain renders (16 epochs), then 6 epochs continued on four datasets rendered
-# through the Tello camera path -- the usual mix and close-ups, at 240x320 and at 84x84 -- with
-# its score calibrations refitted (docs/perception.rst, "Frames through the Tello's camera
-# path"). The shipped sidecar records the second half's commands and the base's own sidecar.
+# through the Tello camera path -- the usual mix and close-ups, at 240x320 and at 84x84 -- then
+# 4 more epochs with obstacle close-ups added as hard negatives, each stage with its score
+# calibrations refitted (docs/perception.rst, "Frames through the Tello's camera path" and
+# "Hard negatives"). The shipped sidecar records the last stage's commands and, nested as
+# init_sidecar, each earlier stage's own sidecar.
 detector-weights: venv
 	$(PY) recipes/train_detector.py --data outputs/det_data --epochs 16 --imgsz 256 --batch 16 \
 	    --threads 1 --name goal_yolov8n_base --out outputs/det_base/goal_yolov8n.pt
@@ -78,7 +80,19 @@ detector-weights: venv
 	$(PY) recipes/train_detector.py --data outputs/det_vp/mix --extra-data outputs/det_vp/close \
 	    --extra-data outputs/det_vp/mix84 --extra-data outputs/det_vp/close84 \
 	    --init outputs/det_base/goal_yolov8n.pt --epochs 6 --imgsz 256 --threads 1 \
-	    --warmup-epochs 0 --close-mosaic 2 --name goal_yolov8n_vp --bench-reps 2
+	    --warmup-epochs 0 --close-mosaic 2 --name goal_yolov8n_vp --bench-reps 2 \
+	    --out outputs/det_vp/ft/goal_yolov8n.pt
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/det_vp/obst --video-path --no-progress \
+	    --image-size 240 320 --n-train 500 --n-val 80 --n-test 200 --seed 25 \
+	    --goal-absent-frac 0 --obstacle-frac 1 --obstacle-distance 0.25 1.5
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/det_vp/obst84 --video-path --no-progress \
+	    --image-size 84 84 --n-train 400 --n-val 60 --n-test 200 --seed 26 \
+	    --goal-absent-frac 0 --obstacle-frac 1 --obstacle-distance 0.25 1.5
+	$(PY) recipes/train_detector.py --data outputs/det_vp/mix --extra-data outputs/det_vp/close \
+	    --extra-data outputs/det_vp/mix84 --extra-data outputs/det_vp/close84 \
+	    --extra-data outputs/det_vp/obst --extra-data outputs/det_vp/obst84 \
+	    --init outputs/det_vp/ft/goal_yolov8n.pt --epochs 4 --imgsz 256 --threads 1 \
+	    --warmup-epochs 0 --close-mosaic 2 --name goal_yolov8n_hn --bench-reps 2
 
 # make depth-weights: the shipped MonoDepth (about 1.5 hours on one core): the base network on
 # plain renders, then a log-BerHu fine-tune on frames through the Tello camera path (video
