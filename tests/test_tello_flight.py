@@ -179,6 +179,25 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
     assert generalist.arrival_head is None
 
 
+def test_the_full_width_check_is_the_default_on_random_layouts():
+    """--reach-full-width auto: on for the emulator's random layouts (no arrival head), off on
+    the thesis board and on a real drone; on / off / a bare flag override it."""
+    def full_width(*argv):
+        return fly_tello.parse_args(list(argv)).reach_rule.full_width
+
+    assert full_width() is True  # the shipped generalist: held-out random layouts
+    assert full_width("--run", str(POLICY)) is False  # the thesis scene, with the head
+    assert full_width("--run", str(POLICY), "--arrival-head", "none") is False
+    assert full_width("--run", str(POLICY), "--layout", "heldout") is True
+    assert full_width("--run", str(POLICY), "--layout", "heldout", "--perception", "sim") is True
+    assert full_width("--run", str(POLICY), "--host", "192.168.10.1", "--dry-run") is False
+    assert full_width("--reach-full-width", "off") is False
+    assert full_width("--run", str(POLICY), "--reach-full-width") is True
+    assert full_width("--run", str(POLICY), "--reach-full-width", "on") is True
+    args = fly_tello.parse_args(["--reach-full-width", "auto"])
+    assert args.reach_full_width == "on"  # resolved, and recorded in the flight's summary
+
+
 def test_the_depth_models_calibrated_range_is_the_default_threshold():
     """Without --reach-distance the range threshold is the depth model's own (stored with
     its weights by recipes/train_depth.py); --reach-distance and --reach-offset win."""
