@@ -34,7 +34,7 @@ def emu():
 def env(emu):
     e = TelloEnv(emu.client(), detector=emu.sim_detector(),
                  depth_estimator=emu.sim_depth_estimator(), command_timeout=1, takeoff_timeout=3, retries=1,
-                 frame_timeout=1.0, before_takeoff=lambda _: emu.reset_world())
+                 frame_timeout=3.0, before_takeoff=lambda _: emu.reset_world())
     yield e
     e.close()
 
