@@ -49,3 +49,27 @@ def test_every_benchmark_routes_torchrl_logs_to_stderr():
                                                     "from tensordict") if m in text),
                            default=len(text))
         assert text.find(line) < first_import, name
+
+
+def test_perception_camera_path_figures_include_obstacle_close_ups():
+    """benchmarks/perception.py's camera-path figures: near, far and obstacle close-ups, plain
+    and through the video path, at both sizes, each with the detector's false-sight rate; the
+    obstacle views are hard negatives (few or no boards in them)."""
+    import json
+
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "perception.py"), "--skip",
+                        "costs", "accuracy", "agreement", "flight", "--path-views", "3",
+                        "--threads", "1"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    figs = [json.loads(line) for line in r.stdout.splitlines()]
+    det = [f for f in figs if f["figure"] == "detector_camera_path"]
+    assert {(tuple(f["image_size"]), f["distance"], f["frames"]) for f in det} == {
+        (size, d, p) for size in ((240, 320), (84, 84)) for d in ("near", "far", "obstacle")
+        for p in ("plain", "video")}
+    for f in det:
+        assert f["n_views"] == 3 and "false_sight_rate" in f
+        if f["distance"] == "far":  # every far view shows the board
+            assert f["n_positives"] == 3 and f["false_sight_rate"] is None
+        if f["distance"] == "obstacle":
+            assert f["n_positives"] < 3 and 0.0 <= f["false_sight_rate"] <= 1.0
+    assert sum(f["figure"] == "depth_camera_path" for f in figs) == len(det)
