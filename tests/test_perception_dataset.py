@@ -167,15 +167,13 @@ def test_obstacle_close_ups():
     """``obstacle_frac`` draws close-ups of obstacles (the detector's hard negatives): the
     nearest obstacle is within the asked range, it fills much of the view, and the default
     (0) leaves every other view as it was."""
-    from torchrl_causal.perception.dataset import _surface_distance
-
     opts = dict(seed=7, image_size=(48, 64), goal_absent_frac=0.0)
     views = list(render_views("train", 24, obstacle_frac=1.0, obstacle_distance=(0.3, 0.8), **opts))
     assert {v.kind for v in views} == {"obstacle"}
     near = []
     for v in views:
         lay = _layout(v)
-        d = min(_surface_distance(o, v.pose[0], v.pose[1]) for o in lay.obstacles)
+        d = min(float(o.footprint_distance(v.pose[0], v.pose[1])) for o in lay.obstacles)
         assert d <= 0.8 + 1e-6, (v.index, d)
         near.append(float(np.mean(v.depth < 1.5)))
     # looking at the obstacle: most views are mostly near pixels; the goal, when it shows

@@ -110,17 +110,20 @@ class Obstacle:
             return float(self.half_size[0])
         return float(math.hypot(self.half_size[0], self.half_size[1]))
 
-    def footprint_mask(self, xs: np.ndarray, ys: np.ndarray, inflate: float) -> np.ndarray:
-        """Boolean mask of grid points ``(xs, ys)`` within ``inflate`` m of the footprint."""
-        dx = xs - self.center[0]
-        dy = ys - self.center[1]
+    def footprint_distance(self, xs, ys) -> np.ndarray:
+        """Horizontal distance (m) of points ``(xs, ys)`` from the footprint (0 inside)."""
+        dx = np.asarray(xs, dtype=np.float64) - self.center[0]
+        dy = np.asarray(ys, dtype=np.float64) - self.center[1]
         if self.shape == "cylinder":
-            return np.hypot(dx, dy) <= self.half_size[0] + inflate
+            return np.maximum(np.hypot(dx, dy) - self.half_size[0], 0.0)
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
         lx = np.abs(c * dx + s * dy) - self.half_size[0]
         ly = np.abs(-s * dx + c * dy) - self.half_size[1]
-        outside = np.hypot(np.maximum(lx, 0.0), np.maximum(ly, 0.0))
-        return outside <= inflate
+        return np.hypot(np.maximum(lx, 0.0), np.maximum(ly, 0.0))
+
+    def footprint_mask(self, xs: np.ndarray, ys: np.ndarray, inflate: float) -> np.ndarray:
+        """Boolean mask of grid points ``(xs, ys)`` within ``inflate`` m of the footprint."""
+        return self.footprint_distance(xs, ys) <= inflate
 
 
 @dataclass(frozen=True)

@@ -196,17 +196,6 @@ def _inside(layout, x, y, margin=0.15) -> bool:
     return xmin + margin <= x <= xmax - margin and ymin + margin <= y <= ymax - margin
 
 
-def _surface_distance(o, x: float, y: float) -> float:
-    """Horizontal distance (m) from ``(x, y)`` to obstacle ``o``'s footprint."""
-    dx, dy = x - o.center[0], y - o.center[1]
-    if o.shape == "cylinder":
-        return max(math.hypot(dx, dy) - o.half_size[0], 0.0)
-    c, s = math.cos(math.radians(o.yaw_deg)), math.sin(math.radians(o.yaw_deg))
-    lx = abs(c * dx + s * dy) - o.half_size[0]
-    ly = abs(-s * dx + c * dy) - o.half_size[1]
-    return math.hypot(max(lx, 0.0), max(ly, 0.0))
-
-
 def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0),
                obstacle_distance=(0.25, 1.5)):
     """``(x, y, z, yaw_deg)`` for a view of ``kind`` (falls back to the start pose)."""
@@ -223,10 +212,10 @@ def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0)
                                      math.log(obstacle_distance[1])))
             phi = rng.uniform(-math.pi, math.pi)
             # walk out along phi from the centre until the footprint is d away
-            r = d + (o.footprint_radius() if o.shape == "box" else o.half_size[0])
+            r = d + o.footprint_radius()
             for _ in range(8):
                 x, y = o.center[0] + r * math.cos(phi), o.center[1] + r * math.sin(phi)
-                r += d - _surface_distance(o, x, y)
+                r += d - float(o.footprint_distance(x, y))
             top = o.center[2] + o.half_size[2]
             z = rng.uniform(0.3, max(min(top, ztop), 0.35))
             bearing = math.degrees(math.atan2(o.center[1] - y, o.center[0] - x))
