@@ -112,6 +112,12 @@ def parse_args(argv=None):
                         "(default): on for the emulator's random layouts, where the arrival "
                         "head does not apply (measured on two seeds, docs/tello.rst), off on "
                         "the thesis board and on a real drone; a bare --reach-full-width is on")
+    p.add_argument("--map", default="auto", choices=("auto", "exact", "estimated"),
+                   help="EgoMap's depth model, for policies that read its map (the "
+                        "generalist): estimated (median column reading, log-odds cells that "
+                        "later views overturn) for a depth estimate, exact for the emulator's "
+                        "true depth. auto (default): exact with --perception sim / sim-depth, "
+                        "estimated otherwise (docs/tello.rst, 'A map for estimated depth')")
     p.add_argument("--reach-offset", type=float, default=None,
                    help="ReachRule: the drone's estimated distance to the goal point (board "
                         "plane from depth, board edges, --board-width, --goal-standoff) must "
@@ -200,6 +206,8 @@ def parse_args(argv=None):
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
                 "(--arrival-head shipped or a weights file; 'auto' chose none here)")
+    if a.map == "auto":
+        a.map = "exact" if a.perception in ("sim", "sim-depth") else "estimated"
     if a.reach_full_width == "auto":  # where it was measured to help (docs/tello.rst)
         a.reach_full_width = "on" if full_width_applies(a) else "off"
     if a.no_height_check:
@@ -439,6 +447,12 @@ def main(argv=None) -> dict:
 
     run = Path(args.run)
     cfg = OmegaConf.load(run / "config.yaml")
+    uses_map = bool({"ego_map", "goal_memory", "map_clearance"}
+                    & set(OmegaConf.select(cfg, "features.inputs", default=[]) or []))
+    if uses_map:  # EgoMap reads the depth this flight has (--map)
+        ego = cfg.features.get("ego_map")
+        cfg.features.ego_map = {**(OmegaConf.to_container(ego) if ego is not None else {}),
+                                "depth": args.map}
     real = args.host is not None
     # the emulator's scene and noise draws, and --compare-sim's episodes (--seed: others)
     seed = int(cfg.seed if args.seed is None else args.seed)
@@ -447,6 +461,8 @@ def main(argv=None) -> dict:
     summary: dict = {"run": str(run), "target": args.host or "emulator",
                      "episodes": args.episodes, "perception": args.perception,
                      "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}
+    if uses_map:
+        summary["map"] = args.map
     for opt in ("depth_weights", "detector_weights", "arrival_head"):
         if getattr(args, opt, None):
             summary[opt] = str(getattr(args, opt))

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from torchrl.envs import SerialEnv, TransformedEnv
+from torchrl.envs import Compose, SerialEnv, TransformedEnv, Transform
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_causal.envs import DroneNavEnv
@@ -342,3 +342,105 @@ def test_env_geofence_reads_a_tello_envs_own_fence():
     assert td["action_mask"][:4].all()
     assert td["action_mask"][4].item() == bool(td["altitude"].item() + 0.25 <= 1.0 - 0.1)
     env.close()
+
+
+class _StrayDepth(Transform):
+    """Writes a false near reading into ``depth`` while ``armed``: the whole of the central
+    columns (``rows="band"``, a phantom obstacle) or one pixel per column (``rows="one"``,
+    a stray pixel), ``dist`` metres away."""
+
+    def __init__(self, dist=0.5, rows="band"):
+        super().__init__(in_keys=["depth"], out_keys=["depth"])
+        self.dist, self.rows, self.armed = dist, rows, False
+
+    def _call(self, td):
+        if self.armed:
+            d = td["depth"].clone()
+            h, w = d.shape[-2:]
+            cols = slice(w // 2 - 4, w // 2 + 4)
+            if self.rows == "band":
+                d[..., cols] = self.dist
+            else:
+                d[..., h // 2, cols] = self.dist
+            td["depth"] = d
+        return td
+
+    def _reset(self, td, td_reset):
+        return self._call(td_reset)
+
+
+def _cells_ahead(transform, lo, hi):
+    """Occupied cells lying ``lo``-``hi`` m ahead of the start pose, within 0.3 m of its axis."""
+    pts = _occupied_points(transform)
+    return int(((pts[:, 0] >= lo) & (pts[:, 0] <= hi) & (pts[:, 1].abs() <= 0.3)).sum())
+
+
+@pytest.mark.parametrize("depth", ["exact", "estimated"])
+def test_a_phantom_stays_on_an_exact_map_and_later_views_erase_it_from_an_estimated_one(depth):
+    stray = _StrayDepth(0.5, "band")
+    env = TransformedEnv(DroneNavEnv(seed=0), Compose(stray, EgoMap(depth=depth)))
+    ego = env.transform[-1]
+    stray.armed = True
+    td = env.reset()  # the thesis scene: nothing within 1 m ahead
+    assert _cells_ahead(ego, 0.35, 0.7) > 0  # the phantom is on the map
+    stray.armed = False
+    td = _fly(env, td, ["ascend", "descend", "ascend", "descend"])  # four true views, no move
+    if depth == "exact":
+        assert _cells_ahead(ego, 0.35, 0.7) > 0  # a cell once occupied stays so
+    else:
+        assert _cells_ahead(ego, 0.35, 0.7) == 0  # seen through: free again
+        assert bool(ego._state["free"][0].any())
+        # the true obstacles ahead stay occupied: repeated hits, clamped log-odds
+        assert _cells_ahead(ego, 1.0, 6.0) > 0
+
+
+@pytest.mark.parametrize("depth", ["exact", "estimated"])
+def test_one_stray_pixel_per_column_is_an_obstacle_only_on_an_exact_map(depth):
+    stray = _StrayDepth(0.5, "one")
+    env = TransformedEnv(DroneNavEnv(seed=0), Compose(stray, EgoMap(depth=depth)))
+    stray.armed = True
+    env.reset()
+    n = _cells_ahead(env.transform[-1], 0.35, 0.7)
+    assert (n > 0) if depth == "exact" else (n == 0)
+
+
+@pytest.mark.parametrize("layout_index", [0, 1])
+def test_an_estimated_map_of_exact_depth_keeps_the_obstacles_where_they_stand(layout_index):
+    """On the simulator's depth both models map the same scene: every occupied cell of the
+    estimated map lies on a solid, and it finds most of the exact map's cells."""
+    maps = {}
+    for depth in ("exact", "estimated"):
+        base = DroneNavEnv("random", split="heldout", layout_index=layout_index, seed=0)
+        env = TransformedEnv(base, EgoMap(depth=depth))
+        td = env.reset()
+        _fly(env, td, ["turn_left", "turn_left", "turn_right", "turn_right", "turn_right",
+                       "turn_right"])
+        maps[depth] = env.transform._state["occ"][0].clone()
+    exact, est = maps["exact"], maps["estimated"]
+    assert int(est.sum()) > 5
+    assert int((est & ~exact).sum()) == 0  # nothing the exact map does not have
+    assert int((est & exact).sum()) >= 0.6 * int(exact.sum())
+
+
+def test_depth_model_options_are_named():
+    with pytest.raises(ValueError, match="depth must be one of .*'lidar'"):
+        EgoMap(depth="lidar")
+    with pytest.raises(ValueError, match="scan_quantile must be a number in \\[0, 1\\), got 1.0"):
+        EgoMap(scan_quantile=1.0)
+    with pytest.raises(ValueError, match="log_odds must be .*got \\(0.85, 0.4\\)"):
+        EgoMap(depth="estimated", log_odds=(0.85, 0.4))
+    with pytest.raises(ValueError, match="log_odds applies to depth='estimated'"):
+        EgoMap(log_odds=(0.85, 0.4, 3.5))
+    assert EgoMap(depth="estimated").scan_quantile == 0.5
+    assert EgoMap().scan_quantile == 0.0
+
+
+def test_rgb_perception_builds_the_map_for_estimated_depth():
+    spec = PolicySpec(inputs=["causal_features", "map_clearance"], history=0, shield=True,
+                      features={"perception": "rgb"}, explorer="egreedy")
+    env = with_policy_features(spec, DroneNavEnv(image_size=48, seed=0))
+    ego = [t for t in env.transform if isinstance(t, EgoMap)]
+    assert len(ego) == 1 and ego[0].depth == "estimated"
+    spec.ego_map = {"depth": "exact"}  # a spec that names it keeps its choice
+    env = with_policy_features(spec, DroneNavEnv(image_size=48, seed=0))
+    assert [t.depth for t in env.transform if isinstance(t, EgoMap)] == ["exact"]

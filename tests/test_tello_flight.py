@@ -255,3 +255,26 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     r = subprocess.run(bench + ["--depth-weights", str(tmp_path / "nope.pt")],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2 and "--depth-weights" in r.stderr and "nope.pt" in r.stderr
+
+
+@pytest.mark.parametrize("perception, expected", [("rgb", "estimated"), ("sim", "exact")])
+def test_the_map_is_built_for_the_depth_the_flight_has(tmp_path, monkeypatch, perception,
+                                                       expected):
+    """--map auto: the generalist's EgoMap treats MonoDepth's depth as an estimate (median
+    column reading, log-odds cells) and the emulator's true depth as exact."""
+    from torchrl_causal.transforms import EgoMap
+
+    assert fly_tello.parse_args(["--perception", perception]).map == expected
+    assert fly_tello.parse_args(["--map", "exact"]).map == "exact"
+    seen = []
+    fly = fly_tello.fly
+
+    def spy(args, policy, tenv, base, emu=None):
+        seen.extend(t.depth for t in tenv.transform if isinstance(t, EgoMap))
+        return fly(args, policy, tenv, base, emu)
+
+    monkeypatch.setattr(fly_tello, "fly", spy)
+    summary = fly_tello.main(["--episodes", "1", "--max-steps", "4", "--perception", perception,
+                              "--out", str(tmp_path), "--no-video", "--seed", "3"])
+    assert seen == [expected] and summary["map"] == expected
+    assert (tmp_path / "episodes.csv").is_file()

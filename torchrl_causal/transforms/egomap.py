@@ -56,7 +56,16 @@ a tuple: the area in the start frame, as :class:`~torchrl_causal.envs.TelloEnv`'
 
 The depth may be the simulator's (``DroneNavEnv``) or estimated from the RGB
 image (``EstimatedDepth``, the Tello path): the transform reads ``depth``
-after the feature stack has written it.
+after the feature stack has written it. ``depth="exact"`` (default) trusts
+every reading: a column's nearest in-band pixel is the obstacle and a cell,
+once seen occupied or free, stays so for the episode. ``depth="estimated"``
+is the map for a depth *estimate* (MonoDepth's readings within 1 m scatter by
+a factor of two either way, docs/perception.rst): a column's obstacle point
+is the median of its in-band pixels (``scan_quantile``), so one stray pixel
+makes no obstacle, and each cell keeps a log-odds occupancy (the sensor model
+of OctoMap, Hornung et al., 2013: +0.85 per hit, -0.4 per pass, clamped to
++-3.5; ``log_odds``) that later views can overturn, so a phantom obstacle
+read in one frame is erased when the drone looks through it again.
 """
 
 from __future__ import annotations
@@ -69,12 +78,21 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Bounded, Unbounded
 from torchrl.envs.transforms import Transform
 
-__all__ = ["EgoMap", "GOAL_MEMORY_FIELDS", "CLEARANCE_FIELDS"]
+__all__ = ["EgoMap", "GOAL_MEMORY_FIELDS", "CLEARANCE_FIELDS", "DEPTH_MODELS",
+           "ESTIMATED_SCAN_QUANTILE", "OCTOMAP_LOG_ODDS"]
 
 #: Half width of the drone's collision hull (m), as in ``layouts.DRONE_HALF_EXTENTS``.
 DRONE_HALF_WIDTH = 0.12
 #: ``action_mask`` forbids a descent that would end lower than this altitude (m).
 FLOOR_MARGIN = 0.15
+
+#: ``depth`` choices: how far the map trusts a depth reading (see the module docstring).
+DEPTH_MODELS = ("exact", "estimated")
+#: ``depth="estimated"``'s defaults: the column statistic and the log-odds sensor model
+#: (hit, pass, clamp) -- OctoMap's (Hornung et al., 2013: p_hit 0.7, p_miss 0.4, clamped
+#: to [0.12, 0.97]).
+ESTIMATED_SCAN_QUANTILE = 0.5
+OCTOMAP_LOG_ODDS = (0.85, 0.4, 3.5)
 
 #: The values of ``goal_memory``, in order.
 GOAL_MEMORY_FIELDS: tuple[str, ...] = (
@@ -138,6 +156,19 @@ class EgoMap(Transform):
             thesis and a Tello flight start it facing the board), so that a goal
             hidden behind the first obstacle is searched for ahead rather than
             anywhere (docs/results.rst, "Searching for a hidden goal").
+        depth: ``"exact"`` (default: the simulator's depth; nearest in-band
+            pixel per column, cells stay as first seen) or ``"estimated"``
+            (a depth estimate such as MonoDepth's: the median in-band pixel,
+            log-odds cells that later views can overturn; see the module
+            docstring and docs/tello.rst, "A map for estimated depth").
+        scan_quantile: which in-band depth of a column is its obstacle point,
+            as a quantile in [0, 1) (0: the nearest; default 0 for
+            ``"exact"``, :data:`ESTIMATED_SCAN_QUANTILE` for ``"estimated"``).
+        log_odds: ``(hit, pass, clamp)``, all > 0: what a cell's log-odds
+            gains when a reading ends in it, loses when a ray passes it, and
+            its bound (``"estimated"`` only; default
+            :data:`OCTOMAP_LOG_ODDS`). A cell is an obstacle while its
+            log-odds is above 0 and seen free while below 0.
 
     Example:
         >>> import torch
@@ -157,7 +188,26 @@ class EgoMap(Transform):
                  turn_deg: float | None = None, fov_deg: float | None = None,
                  min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
                  geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0,
-                 goal_prior: float | None = None):
+                 goal_prior: float | None = None, depth: str = "exact",
+                 scan_quantile: float | None = None, log_odds=None):
+        if depth not in DEPTH_MODELS:
+            raise ValueError(f"EgoMap depth must be one of {DEPTH_MODELS}, got {depth!r}")
+        if scan_quantile is None:
+            scan_quantile = 0.0 if depth == "exact" else ESTIMATED_SCAN_QUANTILE
+        if isinstance(scan_quantile, bool) or not isinstance(scan_quantile, (int, float)) \
+                or not 0.0 <= scan_quantile < 1.0:
+            raise ValueError(f"EgoMap scan_quantile must be a number in [0, 1), got "
+                             f"{scan_quantile!r}")
+        if log_odds is not None and depth != "estimated":
+            raise ValueError(f"EgoMap log_odds applies to depth='estimated', got depth={depth!r}")
+        if log_odds is None:
+            log_odds = OCTOMAP_LOG_ODDS
+        ok = isinstance(log_odds, (tuple, list)) and len(log_odds) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            for v in log_odds)
+        if not ok:
+            raise ValueError(f"EgoMap log_odds must be (hit, pass, clamp), three numbers > 0, "
+                             f"got {log_odds!r}")
         if isinstance(size, bool) or not isinstance(size, int) or size < 8:
             raise ValueError(f"EgoMap size must be an int >= 8, got {size!r}")
         _number("resolution", resolution)
@@ -204,6 +254,9 @@ class EgoMap(Transform):
         self.geofence_margin = float(geofence_margin)
         self.flank_margin = float(flank_margin)
         self.goal_prior = None if goal_prior is None else float(goal_prior)
+        self.depth = depth
+        self.scan_quantile = float(scan_quantile)
+        self.log_odds = tuple(float(v) for v in log_odds)
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -232,6 +285,9 @@ class EgoMap(Transform):
             "pose": torch.zeros(n, 3, device=device),  # x, y, yaw in the start frame
             "occ": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
             "free": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
+            # depth="estimated": each cell's log-odds of being occupied (occ / free: > 0 / < 0)
+            "logodds": torch.zeros(n, self.cells if self.depth == "estimated" else 0,
+                                   self.cells if self.depth == "estimated" else 0, device=device),
             "goal": torch.zeros(n, 3, device=device),  # x, y, z-above-start-camera
             "known": torch.zeros(n, dtype=torch.bool, device=device),
             "seen": torch.zeros(n, dtype=torch.bool, device=device),  # known, not a guess
@@ -304,11 +360,37 @@ class EgoMap(Transform):
         u = torch.arange(w, device=depth.device, dtype=torch.float32) + 0.5
         up = (h / 2.0 - v)[None, :, None] / f * depth  # height of each pixel above the camera
         valid = (up.abs() <= self.band) & (depth > 0) & (depth < self.max_range)
-        z = torch.where(valid, depth, torch.full_like(depth, float("inf"))).amin(1)  # [n, w]
+        if self.scan_quantile > 0:  # a robust statistic of the column's in-band readings
+            z = torch.nanquantile(torch.where(valid, depth, torch.full_like(depth, math.nan)),
+                                  self.scan_quantile, dim=1)
+            z = torch.nan_to_num(z, nan=math.inf)
+        else:
+            z = torch.where(valid, depth, torch.full_like(depth, math.inf)).amin(1)  # [n, w]
         tan_left = (w / 2.0 - u) / f  # [w]
         return z, tan_left
 
     def _write(self, st, idx, depth):
+        if self.depth == "estimated":
+            # this frame's hits and passes, then the log-odds update (a cell hit in this
+            # frame is not also passed by a neighbouring column's ray)
+            n = idx.numel()
+            ar = torch.arange(n, device=idx.device)
+            frame = {"pose": st["pose"][idx],
+                     "occ": torch.zeros(n, self.cells, self.cells, dtype=torch.bool,
+                                        device=idx.device)}
+            frame["free"] = torch.zeros_like(frame["occ"])
+            self._write_sticky(frame, ar, depth)
+            hit, passed = frame["occ"], frame["free"] & ~frame["occ"]
+            l_hit, l_pass, l_max = self.log_odds
+            lo = (st["logodds"][idx] + l_hit * hit.float() - l_pass * passed.float()
+                  ).clamp(-l_max, l_max)
+            st["logodds"][idx] = lo
+            st["occ"][idx] = lo > 0
+            st["free"][idx] = lo < 0
+            return
+        self._write_sticky(st, idx, depth)
+
+    def _write_sticky(self, st, idx, depth):
         z, tan_left = self._scan(depth)
         pose = st["pose"][idx]
         n, w = z.shape
