@@ -112,12 +112,13 @@ def parse_args(argv=None):
                         "(default): on for the emulator's random layouts, where the arrival "
                         "head does not apply (measured on two seeds, docs/tello.rst), off on "
                         "the thesis board and on a real drone; a bare --reach-full-width is on")
-    p.add_argument("--map", default="auto", choices=("auto", "exact", "estimated"),
+    p.add_argument("--map", default="exact", choices=("exact", "estimated"),
                    help="EgoMap's depth model, for policies that read its map (the "
-                        "generalist): estimated (median column reading, log-odds cells that "
-                        "later views overturn) for a depth estimate, exact for the emulator's "
-                        "true depth. auto (default): exact with --perception sim / sim-depth, "
-                        "estimated otherwise (docs/tello.rst, 'A map for estimated depth')")
+                        "generalist): exact (default: every reading trusted, cells stay as "
+                        "first seen) or estimated (median column reading, log-odds cells that "
+                        "later views overturn). On MonoDepth's depth estimated arrives more "
+                        "often and crashes more often (docs/tello.rst, 'A map for estimated "
+                        "depth')")
     p.add_argument("--reach-offset", type=float, default=None,
                    help="ReachRule: the drone's estimated distance to the goal point (board "
                         "plane from depth, board edges, --board-width, --goal-standoff) must "
@@ -206,8 +207,6 @@ def parse_args(argv=None):
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
                 "(--arrival-head shipped or a weights file; 'auto' chose none here)")
-    if a.map == "auto":
-        a.map = "exact" if a.perception in ("sim", "sim-depth") else "estimated"
     if a.reach_full_width == "auto":  # where it was measured to help (docs/tello.rst)
         a.reach_full_width = "on" if full_width_applies(a) else "off"
     if a.no_height_check:

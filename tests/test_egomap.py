@@ -435,12 +435,12 @@ def test_depth_model_options_are_named():
     assert EgoMap().scan_quantile == 0.0
 
 
-def test_rgb_perception_builds_the_map_for_estimated_depth():
+def test_a_policy_spec_passes_the_depth_model_to_its_egomap():
     spec = PolicySpec(inputs=["causal_features", "map_clearance"], history=0, shield=True,
-                      features={"perception": "rgb"}, explorer="egreedy")
+                      explorer="egreedy", ego_map={"depth": "estimated"})
     env = with_policy_features(spec, DroneNavEnv(image_size=48, seed=0))
-    ego = [t for t in env.transform if isinstance(t, EgoMap)]
-    assert len(ego) == 1 and ego[0].depth == "estimated"
-    spec.ego_map = {"depth": "exact"}  # a spec that names it keeps its choice
+    assert [t.depth for t in env.transform if isinstance(t, EgoMap)] == ["estimated"]
+    spec = PolicySpec(inputs=["causal_features", "map_clearance"], history=0, shield=True,
+                      explorer="egreedy")
     env = with_policy_features(spec, DroneNavEnv(image_size=48, seed=0))
     assert [t.depth for t in env.transform if isinstance(t, EgoMap)] == ["exact"]

@@ -257,15 +257,16 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     assert r.returncode == 2 and "--depth-weights" in r.stderr and "nope.pt" in r.stderr
 
 
-@pytest.mark.parametrize("perception, expected", [("rgb", "estimated"), ("sim", "exact")])
-def test_the_map_is_built_for_the_depth_the_flight_has(tmp_path, monkeypatch, perception,
-                                                       expected):
-    """--map auto: the generalist's EgoMap treats MonoDepth's depth as an estimate (median
-    column reading, log-odds cells) and the emulator's true depth as exact."""
+@pytest.mark.parametrize("argv, expected", [([], "exact"), (["--map", "estimated"], "estimated")])
+def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys, argv, expected):
+    """--map: the generalist's EgoMap trusts every depth reading (exact, the default) or
+    treats MonoDepth's depth as an estimate (median column reading, log-odds cells)."""
     from torchrl_causal.transforms import EgoMap
 
-    assert fly_tello.parse_args(["--perception", perception]).map == expected
-    assert fly_tello.parse_args(["--map", "exact"]).map == "exact"
+    assert fly_tello.parse_args(argv).map == expected
+    with pytest.raises(SystemExit):
+        fly_tello.parse_args(["--map", "auto"])
+    assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
     seen = []
     fly = fly_tello.fly
 
@@ -274,7 +275,7 @@ def test_the_map_is_built_for_the_depth_the_flight_has(tmp_path, monkeypatch, pe
         return fly(args, policy, tenv, base, emu)
 
     monkeypatch.setattr(fly_tello, "fly", spy)
-    summary = fly_tello.main(["--episodes", "1", "--max-steps", "4", "--perception", perception,
+    summary = fly_tello.main(["--episodes", "1", "--max-steps", "4", *argv,
                               "--out", str(tmp_path), "--no-video", "--seed", "3"])
     assert seen == [expected] and summary["map"] == expected
     assert (tmp_path / "episodes.csv").is_file()

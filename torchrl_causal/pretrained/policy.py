@@ -244,10 +244,6 @@ class PolicySpec:
 def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> list:
     """The transforms that write what ``spec``'s actor reads (empty for the image-only net).
 
-    With ``features={"perception": "rgb"}`` the map's depth is MonoDepth's estimate, so the
-    :class:`~torchrl_causal.transforms.EgoMap` is built with ``depth="estimated"`` unless
-    ``spec.ego_map`` names its ``depth``.
-
     Example:
         >>> ts = policy_transforms(PolicySpec(inputs=["causal_features", "action_history"],
         ...                                   history=2))
@@ -273,10 +269,7 @@ def policy_transforms(spec: PolicySpec, env=None, seed: int | None = None) -> li
     if spec.uses_ego_map:
         from ..transforms.egomap import EgoMap
 
-        ego = dict(spec.ego_map)
-        if options.get("perception") == "rgb":  # the map is built from MonoDepth's estimate
-            ego.setdefault("depth", "estimated")
-        out.append(EgoMap(**ego))
+        out.append(EgoMap(**spec.ego_map))
         if spec.revisit_guard:
             from ..transforms.visits import VisitMemory
 
