@@ -6,6 +6,7 @@
     python benchmarks/sim_to_real.py --policies thesis generalist --episodes 50
     python benchmarks/sim_to_real.py --episodes 2 --seeds 0   # a smoke run
     python benchmarks/sim_to_real.py --detector-weights W.pt  # candidate weights, same flights
+    python benchmarks/sim_to_real.py --policies generalist --map estimated  # EgoMap's depth model
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
@@ -25,7 +26,10 @@ generalist held-out random layouts. Prints one JSON object per figure:
 
 ``--detector-weights`` / ``--depth-weights`` fly candidate perception weights
 (a ``recipes/train_detector.py`` or ``recipes/train_depth.py`` run) in place of
-the shipped ones; each seed's object names the weights it flew.
+the shipped ones; each seed's object names the weights it flew. ``--map``
+(``exact`` or ``estimated``) is fly_tello's: the depth model of the
+generalist's :class:`~torchrl_causal.transforms.EgoMap` (recorded as ``map``;
+None for a policy without one).
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
 """
@@ -54,11 +58,12 @@ from torchrl_causal.pretrained import policy_dir  # noqa: E402
 TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reached_max": 0.05}
 
 
-def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None) -> dict:
+def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
+        map_depth: str | None = None) -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
-    perception weights in place of the shipped ones.
+    perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``.
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
@@ -66,6 +71,8 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
     for key, flag in (("detector", "--detector-weights"), ("depth", "--depth-weights")):
         if (weights or {}).get(key) is not None:
             argv += [flag, str(weights[key])]
+    if map_depth is not None:
+        argv += ["--map", map_depth]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.main(argv)
 
@@ -80,7 +87,7 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],
             "detector_weights": s.get("detector_weights", "shipped"),
             "depth_weights": s.get("depth_weights", "shipped"),
-            "wall_s": s.get("wall_s")}
+            "map": s.get("map"), "wall_s": s.get("wall_s")}
 
 
 def pooled_figure(policy: str, figures: list[dict]) -> dict:
@@ -120,6 +127,9 @@ def main(argv=None) -> list[dict]:
                    help="candidate YOLO weights to fly instead of the shipped ones")
     p.add_argument("--depth-weights", type=Path, default=None,
                    help="candidate MonoDepth weights to fly instead of the shipped ones")
+    p.add_argument("--map", choices=("exact", "estimated"), default=None,
+                   help="fly_tello.py --map: EgoMap's depth model for a policy that reads its "
+                        "map (default: fly_tello's, exact)")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
@@ -137,7 +147,7 @@ def main(argv=None) -> list[dict]:
     for name in a.policies:
         per_seed = []
         for seed in a.seeds:
-            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights)
+            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map)
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

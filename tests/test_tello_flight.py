@@ -251,6 +251,7 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
                                       "success"}
     assert (tmp_path / "thesis_seed3" / "episodes.csv").is_file()
     assert one["detector_weights"] == str(DEFAULT_WEIGHTS) and one["depth_weights"] == "shipped"
+    assert one["map"] is None  # the thesis policy reads no EgoMap
     # a candidate that is not there is named before anything flies
     r = subprocess.run(bench + ["--depth-weights", str(tmp_path / "nope.pt")],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
@@ -279,3 +280,27 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
                               "--out", str(tmp_path), "--no-video", "--seed", "3"])
     assert seen == [expected] and summary["map"] == expected
     assert (tmp_path / "episodes.csv").is_file()
+
+
+def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, monkeypatch,
+                                                                    capsys):
+    """--map reaches fly_tello.py for every seed; a value fly_tello does not take is named."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    calls = []
+
+    def fake_main(argv):
+        calls.append(argv)
+        return {"success_sim": {"rate": 0.5, "n": 2, "ci95": [0.1, 0.9]}, "agreement": 1.0,
+                "false_reached": 0, "missed_reach": 0, "crashes": 1,
+                "dronenav": {"rate": 0.5, "ci95": [0.1, 0.9]}, "map": argv[argv.index("--map") + 1]}
+
+    monkeypatch.setattr(sim_to_real.fly_tello, "main", fake_main)
+    figs = sim_to_real.main(["--policies", "generalist", "--seeds", "1", "2", "--episodes", "2",
+                             "--out", str(tmp_path), "--map", "estimated"])
+    assert [c[c.index("--map") + 1] for c in calls] == ["estimated", "estimated"]
+    assert [f.get("map") for f in figs] == ["estimated", "estimated", None]
+    with pytest.raises(SystemExit):
+        sim_to_real.main(["--map", "auto"])
+    assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
