@@ -446,8 +446,7 @@ def main(argv=None) -> dict:
 
     run = Path(args.run)
     cfg = OmegaConf.load(run / "config.yaml")
-    uses_map = bool({"ego_map", "goal_memory", "map_clearance"}
-                    & set(OmegaConf.select(cfg, "features.inputs", default=[]) or []))
+    uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
     if uses_map:  # EgoMap reads the depth this flight has (--map)
         ego = cfg.features.get("ego_map")
         cfg.features.ego_map = {**(OmegaConf.to_container(ego) if ego is not None else {}),

@@ -281,13 +281,13 @@ class EgoMap(Transform):
         return torch.tensor(table[: self.n_actions], dtype=torch.float32, device=device)
 
     def _fresh(self, n, device):
+        lo = self.cells if self.depth == "estimated" else 0  # no log-odds grid on an exact map
         return {
             "pose": torch.zeros(n, 3, device=device),  # x, y, yaw in the start frame
             "occ": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
             "free": torch.zeros(n, self.cells, self.cells, dtype=torch.bool, device=device),
             # depth="estimated": each cell's log-odds of being occupied (occ / free: > 0 / < 0)
-            "logodds": torch.zeros(n, self.cells if self.depth == "estimated" else 0,
-                                   self.cells if self.depth == "estimated" else 0, device=device),
+            "logodds": torch.zeros(n, lo, lo, device=device),
             "goal": torch.zeros(n, 3, device=device),  # x, y, z-above-start-camera
             "known": torch.zeros(n, dtype=torch.bool, device=device),
             "seen": torch.zeros(n, dtype=torch.bool, device=device),  # known, not a guess
