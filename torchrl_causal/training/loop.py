@@ -910,6 +910,10 @@ class DQNLoop:
             # episodes are cut by the done flags; trajectory ids are not read (and cost
             # about 0.15 ms a frame)
             track_traj_ids=False,
+            # the loop reads each batch (buffer copy, episode rows) before asking for the
+            # next one, so the collector's own tensordict is handed out, not a clone of
+            # it (about 0.15 ms a frame less; the same runs, bit for bit)
+            return_same_td=True,
         )
         self._recs = self._records()
         if cfg.overlap:  # a resumed run loads both from its checkpoint
