@@ -11,7 +11,10 @@ hydra multirun of ``recipes/train.py`` writing its own run folder under ``--root
     <root>/variants/<variant>/seed_<s>/      (Fig. 5.4 runs)
     <root>/k_sweep/k_<k>/seed_<s>/           (Fig. 5.3 runs, k != 200)
     <root>/figures/fig5_3_k_sweep.png, fig5_4_variants.png, success_variants.png
-    <root>/tables/summary.md, table_5_1_seed_<s>.md
+    <root>/tables/summary.md (mean +- 95 % t-interval half-width over seeds),
+                 table_5_1.md (Table 5.1 over the cbn_v2 seeds), table_5_1_seed_<s>.md,
+                 ordering.md (final greedy success ranked, pairwise Welch intervals),
+                 grid_time.md (training-loop time of the finished runs)
 
 The runs go through a hydra launcher (``--launcher``): ``joblib`` (default;
 ``--jobs`` local processes), ``submitit_local`` (submitit's local executor),
@@ -603,7 +606,7 @@ def aggregate(root: Path) -> dict:
             title="CBN-DQN V2, episode reward per k (cf. thesis Fig. 5.3); "
                   "dashed: first CBN (mean over seeds)")))
 
-    rows = []
+    rows, finals = [], {}
     for label, rs in [(ru.VARIANTS[v].label, [r for r in var_runs if r["variant"] == v])
                       for v in ru.VARIANTS] + [
                      (f"CBN-DQN V2 k={k}", [r for r in sweep_runs if r["k"] == k])
@@ -624,24 +627,109 @@ def aggregate(root: Path) -> dict:
         df = pd.DataFrame(per_seed)
         row = {"run": label, "seeds": len(rs)}
         for c in df.columns:
-            m, s = df[c].mean(), df[c].std(ddof=0)
-            row[c] = f"{m:.2f} +- {s:.2f}" if len(rs) > 1 else f"{m:.2f}"
+            row[c] = results.mean_ci_text(df[c].tolist())
         rows.append(row)
+        if not label.startswith("CBN-DQN V2 k="):  # the ordering ranks the variants only
+            finals[label] = df
     if rows:
         cols = list(dict.fromkeys(c for r in rows for c in r))  # every row starts run, seeds
         md = results.summary_markdown(
-            rows, cols, "Per-run summary (mean +- std over seeds; reward/success of the "
-            "last 50 training episodes; eval_success_<layout>: greedy evaluation at the end)")
+            rows, cols, "Per-run summary (mean +- half-width of its 95 % t-interval over "
+            "seeds; reward/success of the last 50 training episodes; eval_success_<layout>: "
+            "greedy evaluation at the end)")
         (tab_dir / "summary.md").write_text(md)
         out["tables"].append(str(tab_dir / "summary.md"))
+        out["tables"].append(str(_write_ordering(finals, tab_dir / "ordering.md")))
+    v2_tables = []
     for r in var_runs:
         t = r["dir"] / "tables" / "table_5_1.md"
         if r["variant"] == "cbn_v2" and t.exists():
             dst = tab_dir / f"table_5_1_seed_{r['seed']}.md"
             dst.write_text(t.read_text())
             out["tables"].append(str(dst))
+        csv = r["dir"] / "tables" / "table_5_1.csv"
+        if r["variant"] == "cbn_v2" and csv.exists():
+            v2_tables.append(pd.read_csv(csv))
+    if v2_tables:
+        out["tables"].append(str(_write_table_5_1(v2_tables, tab_dir / "table_5_1.md")))
+    out["grid_time"] = _grid_time(var_runs, sweep_runs)
+    (tab_dir / "grid_time.md").write_text(_grid_time_markdown(out["grid_time"]))
+    out["tables"].append(str(tab_dir / "grid_time.md"))
     (root / "reproduce_summary.json").write_text(json.dumps(out, indent=2))
     return out
+
+
+def _write_table_5_1(tables: list, path: Path) -> Path:
+    """Thesis Table 5.1 over seeds: per action, every column's mean +- 95 % t half-width
+    over the ``cbn_v2`` runs' own tables (``tables/table_5_1.csv``)."""
+    cat = pd.concat(tables, ignore_index=True)
+    cols = [c for c in cat.columns if c != "action"]
+    rows = []
+    for action in dict.fromkeys(cat["action"]):  # the tables' own action order
+        part = cat[cat["action"] == action]
+        rows.append({"action": action, "seeds": len(part),
+                     **{c: results.mean_ci_text(part[c].tolist()) for c in cols}})
+    path.write_text(results.summary_markdown(
+        rows, ["action", "seeds", *cols],
+        f"Table 5.1 over {len(tables)} CBN-DQN V2 run(s): mean +- half-width of its 95 % "
+        "t-interval over seeds (edges common with the expert CBN, first / last learned CBN)"))
+    return path
+
+
+def _write_ordering(finals: dict, path: Path) -> Path:
+    """The variants ranked by mean final greedy success per evaluation layout set, each
+    with its 95 % t-interval, and every pair's difference with its 95 % Welch interval:
+    a pair is told apart only where that interval excludes 0."""
+    layouts = sorted({c for df in finals.values() for c in df.columns
+                      if c.startswith("eval_success_")})
+    lines = ["### Measured ordering: final greedy success, mean +- 95 % t half-width over "
+             "seeds; pairs told apart where the 95 % Welch interval of the difference "
+             "excludes 0", ""]
+    for col in layouts:
+        vals = {k: df[col].dropna().tolist() for k, df in finals.items() if col in df}
+        ranked = sorted(vals, key=lambda k: -np.mean(vals[k]) if vals[k] else math.inf)
+        lines += [f"#### {col[len('eval_success_'):]}", "", "| rank | run | seeds | success |",
+                  "|---|---|---|---|"]
+        lines += [f"| {i + 1} | {k} | {len(vals[k])} | {results.mean_ci_text(vals[k])} |"
+                  for i, k in enumerate(ranked)]
+        lines += ["", "| higher | lower | difference | 95 % Welch interval | told apart |",
+                  "|---|---|---|---|---|"]
+        for i, a in enumerate(ranked):
+            for b in ranked[i + 1:]:
+                d, lo, hi = results.welch_diff_ci95(vals[a], vals[b])
+                apart = "n/a (< 2 seeds)" if math.isnan(lo) else (
+                    "yes" if lo > 0 or hi < 0 else "no")
+                ci = "" if math.isnan(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
+                lines.append(f"| {a} | {b} | {d:+.2f} | {ci} | {apart} |")
+        lines.append("")
+    path.write_text("\n".join(lines))
+    return path
+
+
+def _grid_time(var_runs: list, sweep_runs: list) -> dict:
+    """Training-loop time of the finished runs (``summary.json``'s ``loop_seconds``, the
+    last session of a resumed run only), per group and in all."""
+    out = {}
+    for group, rs in (("variants", var_runs), ("k_sweep", sweep_runs)):
+        secs, frames = [], []
+        for r in rs:
+            s = json.loads((r["dir"] / "summary.json").read_text())
+            secs.append(float(s.get("loop_seconds") or 0.0))
+            frames.append(int(s.get("frames") or 0))
+        out[group] = {"runs": len(rs), "frames": sum(frames),
+                      "loop_hours": round(sum(secs) / 3600.0, 2)}
+    out["all"] = {k: round(sum(out[g][k] for g in ("variants", "k_sweep")), 2)
+                  for k in ("runs", "frames", "loop_hours")}
+    return out
+
+
+def _grid_time_markdown(t: dict) -> str:
+    lines = ["### Training-loop time of the finished runs (sum of each run's `loop_seconds`: "
+             "for a resumed run, its last session only; pauses of the machine included)", "",
+             "| group | runs | frames | loop hours |", "|---|---|---|---|"]
+    lines += [f"| {g} | {v['runs']} | {v['frames']:,} | {v['loop_hours']:.2f} |"
+              for g, v in t.items()]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> dict:

@@ -7,8 +7,11 @@ without re-training:
 * :func:`moving_average` -- the thesis's smoothing (window 20 in Fig. 5.3,
   50 in Fig. 5.4); the first ``window - 1`` episodes average what exists.
 * :func:`plot_reward_curves` -- one line per group (variant or k); with
-  several seeds, the mean of the smoothed curves and a band of +-1 standard
-  deviation across seeds.
+  several seeds, the mean of the smoothed curves and a band of the 95 %
+  confidence interval of that mean (Student t over seeds).
+* :func:`mean_ci_text` / :func:`welch_diff_ci95` -- a mean with its 95 %
+  t-interval, and a difference of two means with its 95 % Welch interval (the
+  protocol's tables and its measured ordering).
 * :func:`summary_markdown` -- a plain Markdown table (Table 5.1 itself comes
   from :func:`torchrl_causal.causal.table_5_1`).
 * :func:`load_runs` -- finds run folders under a root and labels them.
@@ -32,6 +35,8 @@ __all__ = [
     "moving_average",
     "mean_ci95",
     "wilson",
+    "mean_ci_text",
+    "welch_diff_ci95",
     "load_episodes",
     "load_runs",
     "stack_curves",
@@ -109,6 +114,47 @@ def mean_ci95(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, half
 
 
+def mean_ci_text(values: Sequence[float], digits: int = 2) -> str:
+    """``"mean +- h"``, ``h`` the half-width of the 95 % Student-t interval of the mean
+    over ``values`` (NaNs dropped); the mean alone for one value, ``"nan"`` for none.
+
+    Example:
+        >>> mean_ci_text([0.8, 1.0, 0.9])
+        '0.90 +- 0.25'
+    """
+    v = np.asarray([x for x in values if not math.isnan(float(x))], dtype=float)
+    if len(v) == 0:
+        return "nan"
+    if len(v) == 1:
+        return f"{v[0]:.{digits}f}"
+    mean, half = mean_ci95(v[:, None])
+    return f"{mean[0]:.{digits}f} +- {half[0]:.{digits}f}"
+
+
+def welch_diff_ci95(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
+    """Difference of means ``mean(a) - mean(b)`` and its 95 % Welch interval (unequal
+    variances, Welch-Satterthwaite degrees of freedom); NaN bounds with fewer than two
+    values on a side. Two constant samples give a zero-width interval.
+
+    Example:
+        >>> [round(x, 3) for x in welch_diff_ci95([1.0, 1.0, 0.9], [0.0, 0.2, 0.1])]
+        [0.867, 0.662, 1.072]
+    """
+    from scipy import stats
+
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    diff = float(a.mean() - b.mean()) if len(a) and len(b) else float("nan")
+    if len(a) < 2 or len(b) < 2:
+        return diff, float("nan"), float("nan")
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    se = math.sqrt(va + vb)
+    if se == 0.0:
+        return diff, diff, diff
+    dof = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    half = float(stats.t.ppf(0.975, dof)) * se
+    return diff, diff - half, diff + half
+
+
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """95 % Wilson score interval of a success rate (sensible at 0 and 1, unlike Wald).
 
@@ -164,13 +210,14 @@ def plot_reward_curves(
         common = min(len(s) for s in seeds)
         smooth = stack_curves([moving_average(s, window)[:common] for s in seeds])
         mean, half = mean_ci95(smooth)
-        if ylabel == "success":
-            half = np.minimum(half, np.minimum(mean, 1.0 - mean))  # a rate stays in [0, 1]
+        lo, hi = mean - half, mean + half
+        if ylabel == "success":  # a rate stays in [0, 1]: each bound is cut, not the width
+            lo, hi = np.clip(lo, 0.0, 1.0), np.clip(hi, 0.0, 1.0)
         x = np.arange(1, len(mean) + 1)
         n = len(seeds)
         ax.plot(x, mean, color=color, label=f"{label} (n={n})" if n > 1 else label)
         if n > 1:
-            ax.fill_between(x, mean - half, mean + half, color=color, alpha=0.2, linewidth=0)
+            ax.fill_between(x, lo, hi, color=color, alpha=0.2, linewidth=0)
         for ep in list((vlines or {}).get(label, []))[:10]:
             ax.axvline(ep, color=color, linestyle="--", linewidth=0.8, alpha=0.6)
     ax.set_xlabel("episode")

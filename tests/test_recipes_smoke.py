@@ -181,6 +181,20 @@ def test_resume_continues_exactly(tmp_path):
     summary_md = (root / "tables" / "summary.md").read_text()
     assert "| CBN-DQN V2 | 2 |" in summary_md and "eval_success_thesis" in summary_md
     assert (root / "tables" / "table_5_1_seed_3.md").exists()  # both copies ran seed 3
+    # Table 5.1 over the two runs: each action's row counts both, with a t half-width
+    t51 = (root / "tables" / "table_5_1.md").read_text()
+    own = pd.read_csv(full / "tables" / "table_5_1.csv")
+    first = own.iloc[0]
+    assert f"| {first['action']} | 2 | {first['expert_edges']:.2f} +- 0.00 |" in t51
+    # the measured ordering: one ranked block per evaluation layout set, a pair row only
+    # between different runs (one variant here: no pair)
+    ordering = (root / "tables" / "ordering.md").read_text()
+    assert "#### thesis" in ordering and "| 1 | CBN-DQN V2 | 2 |" in ordering
+    # the grid's time: both runs' loop seconds, summed
+    secs = sum(json.loads((d / "summary.json").read_text())["loop_seconds"] for d in (full, cut))
+    assert out["grid_time"]["variants"]["runs"] == 2
+    assert out["grid_time"]["variants"]["loop_hours"] == round(secs / 3600.0, 2)
+    assert "| variants | 2 |" in (root / "tables" / "grid_time.md").read_text()
 
 
 def test_load_policy_reproduces_the_final_evaluation(tmp_path):
