@@ -180,6 +180,19 @@ def build_loss(cfg: DictConfig, actor, env):
     return loss, optim
 
 
+def _dotlist(overrides) -> list[str]:
+    """``load_policy``'s overrides as OmegaConf's dotlist: Hydra's append prefix (``+key=v``,
+    ``++key=v``) is dropped, since a dotlist adds missing keys anyway (left in, it would
+    silently set a key named ``+key``); anything that is not ``key=value`` is refused."""
+    out = []
+    for o in overrides:
+        if not isinstance(o, str) or "=" not in o or o.lstrip("+").startswith(("~", "=")):
+            raise ValueError(f"Invalid override {o!r} for load_policy: expected 'key=value' "
+                             "(Hydra's '+key=value' is accepted; deleting a key is not)")
+        out.append(o.lstrip("+"))
+    return out
+
+
 def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str = "cpu",
                 env=None):
     """The trained policy of a finished run folder, rebuilt by this recipe's builders.
@@ -194,7 +207,8 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
         run_dir: a run folder written by :func:`train`.
         overrides: config overrides applied to the run's ``config.yaml``, e.g.
             ``["features.options.perception=rgb"]`` to fly the policy on
-            features from the RGB image alone.
+            features from the RGB image alone. Keys the config lacks are
+            added; Hydra's ``+key=value`` is accepted as the same.
         scene: the env's scene (default: the run's training scene); ignored
             when ``env`` is given.
         device: the device of the networks, the gate and the env outputs.
@@ -208,6 +222,7 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
     Raises:
         FileNotFoundError: the folder has no ``config.yaml``, ``model.pt``, or
             neither ``explorer.pt`` nor a checkpoint (the run did not finish).
+        ValueError: an override that is not ``key=value``.
     """
     from tensordict.nn import TensorDictSequential
 
@@ -222,7 +237,7 @@ def load_policy(run_dir, *, overrides=(), scene: str | None = None, device: str 
                 f"run_dir={str(run_dir)!r} has no {what} file {str(path)!r}: is it a finished "
                 "run folder of recipes/train.py?")
     cfg = OmegaConf.merge(OmegaConf.load(files["config"]),
-                          OmegaConf.from_dotlist(list(overrides)))
+                          OmegaConf.from_dotlist(_dotlist(overrides)))
     cfg.device = device
     variant = ru.VARIANTS[cfg.variant]
     if env is None:

@@ -221,6 +221,13 @@ def test_load_policy_reproduces_the_final_evaluation(tmp_path):
     assert evaluate(policy, env, episodes=1, seed=seed)["mean_reward"] == pytest.approx(expected,
                                                                                         abs=1e-4)
     env.close()
+    # Hydra's append prefix is the same override (a dotlist would have set a key '+env')
+    _, env, cfg = recipe.load_policy(out, overrides=["+env.noise=tello", "++eval.episodes=7"])
+    assert cfg.env.noise == "tello" and cfg.eval.episodes == 7 and "+env" not in cfg
+    env.close()
+    for bad in ("~env.noise", "env.noise", "=tello"):
+        with pytest.raises(ValueError, match="Invalid override"):
+            recipe.load_policy(out, overrides=[bad])
     with pytest.raises(FileNotFoundError, match="model"):
         (out / "model.pt").unlink()
         recipe.load_policy(out)
