@@ -10,7 +10,8 @@ hydra multirun of ``recipes/train.py`` writing its own run folder under ``--root
 
     <root>/variants/<variant>/seed_<s>/      (Fig. 5.4 runs)
     <root>/k_sweep/k_<k>/seed_<s>/           (Fig. 5.3 runs, k != 200)
-    <root>/figures/fig5_3_k_sweep.png, fig5_4_variants.png, success_variants.png
+    <root>/figures/fig5_3_k_sweep.png, fig5_4_variants.png, success_variants.png,
+                  success_k_sweep.png
     <root>/tables/summary.md (mean +- 95 % t-interval half-width over seeds),
                  table_5_1.md (Table 5.1 over the cbn_v2 seeds), table_5_1_seed_<s>.md,
                  ordering.md (final greedy success ranked, pairwise Welch intervals),
@@ -593,11 +594,13 @@ def aggregate(root: Path) -> dict:
 
     k_runs = [r for r in var_runs if r["variant"] == "cbn_v2"] + sweep_runs
     kgroups: dict[str, list] = {}
+    ksuccess: dict[str, list] = {}
     vlines: dict[str, list] = {}
     for k in sorted({r["k"] for r in k_runs}):
         rs = [r for r in k_runs if r["k"] == k]
         label = f"k={k}"
         kgroups[label] = [r["episodes"]["reward"].tolist() for r in rs]
+        ksuccess[label] = [r["episodes"]["success"].astype(float).tolist() for r in rs]
         firsts = [float(r["relearns"]["episode"].iloc[0]) for r in rs if len(r["relearns"])]
         vlines[label] = [float(np.mean(firsts))] if firsts else []
     if kgroups:
@@ -605,6 +608,9 @@ def aggregate(root: Path) -> dict:
             kgroups, 20, fig_dir / "fig5_3_k_sweep.png", vlines=vlines,
             title="CBN-DQN V2, episode reward per k (cf. thesis Fig. 5.3); "
                   "dashed: first CBN (mean over seeds)")))
+        out["figures"].append(str(results.plot_reward_curves(
+            ksuccess, 20, fig_dir / "success_k_sweep.png", ylabel="success", vlines=vlines,
+            title="CBN-DQN V2, success rate per k; dashed: first CBN (mean over seeds)")))
 
     rows, finals = [], {}
     for label, rs in [(ru.VARIANTS[v].label, [r for r in var_runs if r["variant"] == v])

@@ -177,7 +177,8 @@ def test_resume_continues_exactly(tmp_path):
     shutil.copytree(cut, root / "variants" / "cbn_v2" / "seed_1")
     out = reproduce.aggregate(root)
     names = sorted(Path(f).name for f in out["figures"])
-    assert names == ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_variants.png"]
+    assert names == ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_k_sweep.png",
+                     "success_variants.png"]
     summary_md = (root / "tables" / "summary.md").read_text()
     assert "| CBN-DQN V2 | 2 |" in summary_md and "eval_success_thesis" in summary_md
     assert (root / "tables" / "table_5_1_seed_3.md").exists()  # both copies ran seed 3

@@ -28,7 +28,8 @@ TINY = [
     "eval.episodes=1", "eval.final_episodes=1", "env.eval_layouts=[thesis]",
     "checkpoint.interval_frames=0", "progress=false", "threads=1", "outputs.draw_cbns=false",
 ]
-FIGURES = ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_variants.png"]
+FIGURES = ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_k_sweep.png",
+           "success_variants.png"]
 
 
 @pytest.fixture(autouse=True)
