@@ -682,15 +682,21 @@ def _write_table_5_1(tables: list, path: Path) -> Path:
     return path
 
 
+#: Seeds a variant needs on each side of a pair before the ordering calls the pair.
+MIN_SEEDS_TO_ORDER = 3
+
+
 def _write_ordering(finals: dict, path: Path) -> Path:
     """The variants ranked by mean final greedy success per evaluation layout set, each
     with its 95 % t-interval, and every pair's difference with its 95 % Welch interval:
-    a pair is told apart only where that interval excludes 0."""
+    a pair is told apart only where that interval excludes 0, and only with at least
+    ``MIN_SEEDS_TO_ORDER`` seeds on each side."""
     layouts = sorted({c for df in finals.values() for c in df.columns
                       if c.startswith("eval_success_")})
     lines = ["### Measured ordering: final greedy success, mean +- 95 % t half-width over "
              "seeds; pairs told apart where the 95 % Welch interval of the difference "
-             "excludes 0", ""]
+             f"excludes 0 (with >= {MIN_SEEDS_TO_ORDER} seeds a side); each interval is 95 % "
+             "on its own, with no correction for the number of pairs", ""]
     for col in layouts:
         vals = {k: df[col].dropna().tolist() for k, df in finals.items() if col in df}
         ranked = sorted(vals, key=lambda k: -np.mean(vals[k]) if vals[k] else math.inf)
@@ -703,7 +709,10 @@ def _write_ordering(finals: dict, path: Path) -> Path:
         for i, a in enumerate(ranked):
             for b in ranked[i + 1:]:
                 d, lo, hi = results.welch_diff_ci95(vals[a], vals[b])
-                apart = "n/a (< 2 seeds)" if math.isnan(lo) else (
+                # with two seeds (one degree of freedom), and a side stuck at 0 or 1 with no
+                # spread, the interval is not worth a verdict: three seeds a side at least
+                few = min(len(vals[a]), len(vals[b])) < MIN_SEEDS_TO_ORDER
+                apart = f"n/a (< {MIN_SEEDS_TO_ORDER} seeds)" if few or math.isnan(lo) else (
                     "yes" if lo > 0 or hi < 0 else "no")
                 ci = "" if math.isnan(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
                 lines.append(f"| {a} | {b} | {d:+.2f} | {ci} | {apart} |")
