@@ -7,7 +7,7 @@ without re-training:
 * :func:`moving_average` -- the thesis's smoothing (window 20 in Fig. 5.3,
   50 in Fig. 5.4); the first ``window - 1`` episodes average what exists.
 * :func:`plot_reward_curves` -- one line per group (variant or k); with
-  several seeds, the mean of the smoothed curves and a band of the 95 %
+  three seeds or more, the mean of the smoothed curves and a band of the 95 %
   confidence interval of that mean (Student t over seeds).
 * :func:`mean_ci_text` / :func:`welch_diff_ci95` -- a mean with its 95 %
   t-interval, and a difference of two means with its 95 % Welch interval (the
@@ -179,10 +179,11 @@ def plot_reward_curves(
     title: str = "",
     vlines: Mapping[str, Sequence[float]] | None = None,
     ylabel: str = "episode reward",
+    min_band_seeds: int = 3,
 ) -> Path:
     """Draws smoothed episode-reward curves, one line (mean over seeds) per group,
-    with a band of the 95 % confidence interval of the mean where several seeds exist,
-    over the episodes that every seed of the group reached.
+    with a band of the 95 % confidence interval of the mean where at least
+    ``min_band_seeds`` seeds exist, over the episodes that every seed of the group reached.
 
     Args:
         groups: label -> list of per-seed reward sequences (one value per episode).
@@ -193,6 +194,9 @@ def plot_reward_curves(
             episodes at which a CBN was (re)learned, as in Fig. 5.3); only the
             first few are drawn per group to keep the figure readable.
         ylabel: y axis label.
+        min_band_seeds: the fewest seeds a group needs for its band. With two seeds
+            (one degree of freedom, t = 12.7) the band spans most of the axis and hides
+            the other groups, so it is left out by default.
 
     Returns:
         ``path``.
@@ -216,7 +220,7 @@ def plot_reward_curves(
         x = np.arange(1, len(mean) + 1)
         n = len(seeds)
         ax.plot(x, mean, color=color, label=f"{label} (n={n})" if n > 1 else label)
-        if n > 1:
+        if n >= max(2, min_band_seeds):
             ax.fill_between(x, lo, hi, color=color, alpha=0.2, linewidth=0)
         for ep in list((vlines or {}).get(label, []))[:10]:
             ax.axvline(ep, color=color, linestyle="--", linewidth=0.8, alpha=0.6)

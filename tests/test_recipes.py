@@ -139,6 +139,34 @@ def test_moving_average_and_seed_bands(tmp_path):
     assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_bands_need_three_seeds_and_success_bounds_are_cut(tmp_path, monkeypatch):
+    """A group gets its 95 % band from three seeds on (two seeds: t = 12.7, the band would
+    hide the rest); a success band's bounds are cut to [0, 1] one by one, not narrowed."""
+    import matplotlib.axes
+
+    bands = []
+    orig = matplotlib.axes.Axes.fill_between
+    monkeypatch.setattr(matplotlib.axes.Axes, "fill_between",
+                        lambda self, x, lo, hi, **kw: bands.append((lo, hi)) or orig(
+                            self, x, lo, hi, **kw))
+    rng = np.random.default_rng(0)
+    three = [(rng.uniform(size=60) < 0.1).astype(float).tolist() for _ in range(3)]
+    two = [(rng.uniform(size=60) < 0.5).astype(float).tolist() for _ in range(2)]
+    results.plot_reward_curves({"three": three, "two": two}, 20, tmp_path / "s.png",
+                               ylabel="success")
+    assert len(bands) == 1  # the three-seed group only
+    lo, hi = bands[0]
+    mean, half = results.mean_ci95(results.stack_curves(
+        [results.moving_average(s, 20) for s in three]))
+    np.testing.assert_allclose(lo, np.clip(mean - half, 0, 1))
+    np.testing.assert_allclose(hi, np.clip(mean + half, 0, 1))
+    assert (hi > 2 * mean).any()  # near 0 the upper bound keeps its width
+    bands.clear()
+    results.plot_reward_curves({"three": three, "two": two}, 20, tmp_path / "s2.png",
+                               ylabel="success", min_band_seeds=2)
+    assert len(bands) == 2
+
+
 def test_reproduce_plan_covers_protocol(tmp_path):
     plan = reproduce.run_plan(tmp_path, "full", 3, list(ru.VARIANTS), [100, 200, 400, 600])
     assert len(plan) == len(ru.VARIANTS) * 3 + 3 * 3  # variants (controls too) + k sweep
