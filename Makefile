@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights detector-weights arrival-weights clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights detector-weights arrival-weights protocol clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,21 @@ generalist: venv
 	$(PY) recipes/ship_policy.py outputs/generalist generalist --loop-guard --flank-margin 0.3 \
 	    --geofence env --revisit-guard \
 	    --command "make generalist GENERALIST_ARGS='$(GENERALIST_ARGS)'"
+
+# make protocol: the thesis protocol in full (docs/results.rst, "The thesis protocol"), in
+# the order the grid runs it: the five variants and the two controls x 5 seeds, the k sweep
+# x 5 seeds, then preset=thesis (the five variants x 2 seeds). Every run checkpoints, so the
+# same command continues an interrupted grid. Days on 2 cores; PROTOCOL_ARGS picks the
+# launcher, e.g. PROTOCOL_ARGS='--launcher ray --jobs 16' on a 16-core box.
+PROTOCOL_ARGS ?= --launcher ray --jobs 2
+PROTOCOL_RUN := recipes/reproduce.py --mode full --no-estimate $(PROTOCOL_ARGS)
+protocol: venv
+	$(PY) $(PROTOCOL_RUN) --seeds 5 --root outputs/reproduce --groups variants \
+	    -- threads=1 progress=false
+	$(PY) $(PROTOCOL_RUN) --seeds 5 --root outputs/reproduce --groups k_sweep \
+	    -- threads=1 progress=false
+	$(PY) $(PROTOCOL_RUN) --seeds 2 --root outputs/reproduce_thesis --groups variants \
+	    --variants dqn_image cbn_defined cbn_p cbn_pn cbn_v2 -- preset=thesis threads=1 progress=false
 
 # make ship-thesis THESIS_RUN=<run folder of make train>: ship it as pretrained "thesis"
 THESIS_RUN ?= outputs/make_train

@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import pytest
 import yaml
 
 import torchrl_causal
@@ -29,3 +30,23 @@ def test_readme_opens_with_the_two_commands_and_makefile_has_them():
         assert target in makefile
     ci = (ROOT / ".ci" / "run").read_text()
     assert "make test" in ci
+
+
+def test_make_protocol_runs_the_grid_in_order():
+    """``make protocol``: the variants, the k sweep, then preset=thesis, each a resumable
+    reproduce.py grid (printed by ``make -n``, nothing run)."""
+    import shutil
+    import subprocess
+
+    if shutil.which("make") is None:
+        pytest.skip("no make on this machine")
+    out = subprocess.run(["make", "-n", "protocol", "VENV=.venv-dry", "PYTHON=true"],
+                         cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    runs = [line for line in out.splitlines() if "recipes/reproduce.py" in line]
+    assert len(runs) == 3
+    assert "--groups variants" in runs[0] and "--seeds 5" in runs[0]
+    assert "--groups k_sweep" in runs[1]
+    assert "--seeds 2" in runs[2] and "outputs/reproduce_thesis" in runs[2]
+    assert all("--launcher ray --jobs 2" in r for r in runs)
+    tail = out[out.index(runs[2]):]
+    assert "preset=thesis" in tail and "cbn_v2" in tail
