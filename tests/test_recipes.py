@@ -195,3 +195,21 @@ def test_tello_noise_preset_reaches_the_env():
         assert (env.position_noise_std, env.yaw_noise_std_deg) == expected
         env.close()
     assert TELLO_MOVE_NOISE == {"position_noise_std": 0.05, "yaw_noise_std_deg": 3.0}
+
+
+def test_ordering_calls_a_pair_only_with_three_seeds_a_side(tmp_path):
+    """tables/ordering.md: ranked by mean; a pair is told apart where its Welch interval
+    excludes 0, and not called at all below three seeds on a side."""
+    finals = {"A": pd.DataFrame({"eval_success_thesis": [1.0, 0.95, 0.9]}),
+              "B": pd.DataFrame({"eval_success_thesis": [0.0, 0.1, 0.05]}),
+              "C": pd.DataFrame({"eval_success_thesis": [0.9, 0.0, 0.5]}),
+              "D": pd.DataFrame({"eval_success_thesis": [1.0, 1.0]})}
+    text = reproduce._write_ordering(finals, tmp_path / "ordering.md").read_text()
+    ranks = [line.split(" | ")[1] for line in text.splitlines() if line.startswith("| ") and
+             line.split(" | ")[0] in ("| 1", "| 2", "| 3", "| 4")]
+    assert ranks == ["D", "A", "C", "B"]
+    rows = {tuple(line.split(" | ")[:2]): line for line in text.splitlines()
+            if line.startswith("| ") and (" | [" in line or "n/a" in line)}
+    assert rows[("| A", "B")].endswith("| yes |")
+    assert rows[("| A", "C")].endswith("| no |")  # C's spread covers A
+    assert rows[("| D", "A")].endswith("| n/a (< 3 seeds) |")  # two seeds: no verdict
