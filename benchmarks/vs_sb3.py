@@ -324,14 +324,17 @@ def first_success(evals) -> int | None:
 
 
 def mean_ci(values):
+    """Mean and 95 % t half-width (recipes/results.py's ``mean_ci95``; 0 for one value)."""
+    import numpy as np
+    from results import mean_ci95
+
     values = [v for v in values if v is not None]
     if not values:
         return None, None
     if len(values) == 1:
         return float(values[0]), 0.0
-    t = {2: 12.706, 3: 4.303, 4: 3.182, 5: 2.776, 6: 2.571, 7: 2.447, 8: 2.365, 9: 2.306}
-    half = t.get(len(values), 2.262) * statistics.stdev(values) / math.sqrt(len(values))
-    return float(statistics.mean(values)), float(half)
+    mean, half = mean_ci95(np.asarray(values, dtype=float)[:, None])
+    return float(mean[0]), float(half[0])
 
 
 def main(argv=None) -> list[dict]:
