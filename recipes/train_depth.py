@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shlex
 import sys
 import time
@@ -71,6 +72,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch threads (1: one CPU core)")
+    p.add_argument("--device", default="cpu",
+                   help="where the network trains: cpu, cuda or cuda:N (the batches are built "
+                        "on the CPU; the held-out evaluation and timings run on the CPU)")
     p.add_argument("--work-height", type=int, default=96)
     p.add_argument("--widths", type=int, nargs=5, default=[16, 24, 32, 64, 96])
     p.add_argument("--decoder", type=int, nargs=4, default=[64, 32, 24, 16])
@@ -85,6 +89,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "reach_calibration (TelloEnv's default; 0: not calibrated)")
     p.add_argument("--stop-after", type=int, default=None,
                    help="stop (checkpointed, no weights written) after this many epochs; --resume continues")
+    p.add_argument("--evaluate-only", default=None, metavar="WEIGHTS",
+                   help="train nothing: evaluate these weights (trained elsewhere, e.g. on a GPU "
+                        "box) on the held-out sets of --data, calibrate their arrival range, and "
+                        "write them with the figures to --out; the training record in the "
+                        "weights is kept")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     for name in ("epochs", "batch_size", "threads"):
@@ -92,6 +101,10 @@ def parse_args(argv=None) -> argparse.Namespace:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     if not a.lr > 0:
         raise ValueError(f"--lr must be > 0, got {a.lr}")
+    if not (a.device == "cpu" or re.fullmatch(r"cuda(:\d+)?", a.device)):
+        raise ValueError(f"--device must be cpu, cuda or cuda:N, got {a.device!r}")
+    if a.device != "cpu" and not torch.cuda.is_available():
+        raise ValueError(f"--device {a.device!r}: CUDA is not available on this machine")
     if a.work_height < 32 or a.work_height % 32:
         raise ValueError(f"--work-height must be a multiple of 32, got {a.work_height}")
     if any(c < 32 or c % 32 for c in a.crop_widths):
@@ -106,6 +119,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                     f"--data {root!r}: {f} not found; render it with "
                     f"python -m torchrl_causal.perception.dataset --out {root} --n-train N --n-val N --n-test N"
                 )
+    if a.evaluate_only is not None and not Path(a.evaluate_only).is_file():
+        raise ValueError(f"--evaluate-only {a.evaluate_only!r}: no such weights file")
     if a.init is not None and not Path(a.init).is_file():
         raise ValueError(f"--init {a.init!r}: no such weights file")
     if a.reach_poses != 0 and a.reach_poses < 10:
@@ -187,12 +202,14 @@ def make_batch(data: dict, idx: torch.Tensor, g: torch.Generator, crop_widths, l
 
 @torch.no_grad()
 def validate(net: FCRN, data: dict, batch_size: int = 32) -> dict:
-    """Metrics at the working resolution on the un-augmented full-width images."""
+    """Metrics at the working resolution on the un-augmented full-width images
+    (computed on the CPU, the network run where its parameters are)."""
     net.eval()
+    device = next(net.parameters()).device
     total: dict = {}
     for s in range(0, data["n"], batch_size):
         x = data["full"][s : s + batch_size].float().div_(255.0)
-        pred = net(x)[:, 0]
+        pred = net(x.to(device))[:, 0].float().cpu()
         for k, v in depth_metrics(pred, data["depth"][s : s + batch_size].float(), max_depth=net.max_depth).items():
             total[k] = total.get(k, 0) + v
     n, nn_ = total.pop("n_images"), max(total.pop("n_images_in_range"), 1)
@@ -220,10 +237,72 @@ def time_estimator(est: MonoDepth, size, batch: int, repeats: int = 5) -> float:
 # ----------------------------------------------------------------------------- main
 
 
+def heldout_figures(est: MonoDepth, a, roots: list[Path], data_meta: dict, image_size) -> tuple:
+    """The held-out figures of ``est``: (metrics per test set, CPU ms per frame, the
+    arrival range's calibration or None), as written into the sidecar."""
+    root = roots[0]
+    metrics = {
+        "test_{}x{}".format(*image_size): evaluate_depth(
+            est, root / "depth" / "test.npz", limit=a.limit_eval),
+        "val_{}x{}".format(*image_size): evaluate_depth(
+            est, root / "depth" / "val.npz", limit=a.limit_eval),
+    }
+    for r in roots[1:]:  # each further root's own test split, by its folder name
+        metrics["test_{}x{}_{}".format(*image_size, r.name)] = evaluate_depth(
+            est, r / "depth" / "test.npz", limit=a.limit_eval)
+    if a.n_test_84 > 0:
+        from torchrl_causal.perception.dataset import render_views
+
+        views = render_views(
+            "test", a.n_test_84, seed=int(data_meta.get("seed", 0)) + 1, image_size=(84, 84),
+            layout_seed=int(data_meta.get("layout_seed", 0)),
+        )
+        metrics["test_84x84"] = evaluate_depth(est, views)
+    timing = {
+        f"{h}x{w}_batch{b}": round(time_estimator(est, (h, w), b), 2)
+        for (h, w) in ((240, 320), (84, 84))
+        for b in (1, 16)
+    }
+    reach = None
+    if a.reach_poses > 0:
+        from torchrl_causal.envs.reach import calibrate_reach_distance
+
+        print(f"calibrating the arrival rule's range on {a.reach_poses} poses ...", flush=True)
+        reach = calibrate_reach_distance(est, poses=a.reach_poses, seed=0)
+        reach["command"] = (f"calibrate_reach_distance(est, poses={a.reach_poses}, seed=0) "
+                            "(benchmarks/reach_calibration.py)")
+    return metrics, timing, reach
+
+
 def _atomic_save(obj, path: Path):
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
+
+
+def evaluate_only(a, argv, roots: list[Path], data_meta: dict) -> dict:
+    """``--evaluate-only``: the held-out figures of weights trained elsewhere, written
+    with them (their training record kept, the figures and this command added)."""
+    est = MonoDepth.load(a.evaluate_only)
+    record = dict(est.meta)
+    history = read_sidecar(a.evaluate_only).get("history")
+    with np.load(roots[0] / "depth" / "test.npz") as d:
+        image_size = tuple(d["rgb"].shape[1:3])
+    metrics, timing, reach = heldout_figures(est, a, roots, data_meta, image_size)
+    record.update(
+        metrics={k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
+                 for k, m in metrics.items()},
+        ms_per_frame_cpu=timing, reach_calibration=reach,
+        evaluated_by="python " + " ".join(
+            shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
+        evaluated_with_torch=str(torch.__version__),
+    )
+    out = est.save(a.out, meta=record)
+    out.with_suffix(".json").write_text(json.dumps({**record, "history": history}, indent=1) + "\n")
+    result = {"weights": str(out), "bytes": out.stat().st_size, "metrics": record["metrics"],
+              "ms_per_frame_cpu": timing}
+    print(json.dumps(result))
+    return result
 
 
 def main(argv=None) -> dict:
@@ -232,14 +311,16 @@ def main(argv=None) -> dict:
     torch.manual_seed(a.seed)
     roots = [Path(r) for r in a.data]
     root = roots[0]
-    run_dir = Path(a.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     metas = [json.loads((r / "meta.json").read_text()) if (r / "meta.json").is_file() else {}
              for r in roots]
     data_meta = metas[0]
     # a fine-tune's parent, read before --out may overwrite it (the shipped weights' chain)
     parent = ({k: v for k, v in read_sidecar(a.init).items() if k != "history"}
               if a.init is not None else None)
+    if a.evaluate_only is not None:
+        return evaluate_only(a, argv, roots, data_meta)
+    run_dir = Path(a.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
 
     t_load = time.perf_counter()
     train = concat_splits([load_split(r / "depth" / "train.npz", a.work_height, a.limit_train)
@@ -254,6 +335,8 @@ def main(argv=None) -> dict:
         net.float()
     else:
         net = FCRN(widths=tuple(a.widths), decoder=tuple(a.decoder))
+    device = torch.device(a.device)
+    net.to(device)
     steps_per_epoch = max(1, train["n"] // a.batch_size)
     total_steps = steps_per_epoch * a.epochs
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=a.weight_decay)
@@ -291,6 +374,7 @@ def main(argv=None) -> dict:
         for s in range(steps_per_epoch):
             idx = perm[s * a.batch_size : (s + 1) * a.batch_size]
             x, y = make_batch(train, idx, g, a.crop_widths, a.lowres_prob)
+            x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
             loss = berhu_loss(net(x), y, log=a.loss == "log-berhu")
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -307,7 +391,7 @@ def main(argv=None) -> dict:
         state["train_seconds"] += rec["seconds"]
         if state["best"] is None or v["abs_rel"] < state["best"]["val_abs_rel"]:
             state["best"] = rec
-            state["best_state"] = {k: t.clone() for k, t in net.state_dict().items()}
+            state["best_state"] = {k: t.detach().cpu().clone() for k, t in net.state_dict().items()}
         state["epoch"] = epoch + 1
         _atomic_save(
             {"args": vars(a), "net": net.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
@@ -327,38 +411,9 @@ def main(argv=None) -> dict:
         bar.close()
 
     # ------------------------------------------------------------------ held-out evaluation
-    net.load_state_dict(state["best_state"])
+    net.cpu().load_state_dict(state["best_state"])
     est = MonoDepth(net, work_height=a.work_height)
-    metrics = {
-        "test_{}x{}".format(*train["image_size"]): evaluate_depth(
-            est, root / "depth" / "test.npz", limit=a.limit_eval),
-        "val_{}x{}".format(*train["image_size"]): evaluate_depth(
-            est, root / "depth" / "val.npz", limit=a.limit_eval),
-    }
-    for r in roots[1:]:  # each further root's own test split, by its folder name
-        metrics["test_{}x{}_{}".format(*train["image_size"], r.name)] = evaluate_depth(
-            est, r / "depth" / "test.npz", limit=a.limit_eval)
-    if a.n_test_84 > 0:
-        from torchrl_causal.perception.dataset import render_views
-
-        views = render_views(
-            "test", a.n_test_84, seed=int(data_meta.get("seed", 0)) + 1, image_size=(84, 84),
-            layout_seed=int(data_meta.get("layout_seed", 0)),
-        )
-        metrics["test_84x84"] = evaluate_depth(est, views)
-    timing = {
-        f"{h}x{w}_batch{b}": round(time_estimator(est, (h, w), b), 2)
-        for (h, w) in ((240, 320), (84, 84))
-        for b in (1, 16)
-    }
-    reach = None
-    if a.reach_poses > 0:
-        from torchrl_causal.envs.reach import calibrate_reach_distance
-
-        print(f"calibrating the arrival rule's range on {a.reach_poses} poses ...", flush=True)
-        reach = calibrate_reach_distance(est, poses=a.reach_poses, seed=0)
-        reach["command"] = (f"calibrate_reach_distance(est, poses={a.reach_poses}, seed=0) "
-                            "(benchmarks/reach_calibration.py)")
+    metrics, timing, reach = heldout_figures(est, a, roots, data_meta, train["image_size"])
     sidecar = {
         "name": "monodepth",
         "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
@@ -399,6 +454,7 @@ def main(argv=None) -> dict:
         "parameters": sum(p.numel() for p in net.parameters()),
         "train_seconds": round(state["train_seconds"], 1),
         "threads": a.threads,
+        "device": a.device,
         "metrics": {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
                     for k, m in metrics.items()},
         "ms_per_frame_cpu": timing,

@@ -328,6 +328,21 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
     assert side["data"]["counts"] == {"train": 24, "val": 4, "test": 4} and side["epochs"] == 2
     assert full["metrics"] == side["metrics"]
     assert side["reach_calibration"] is None and a.reach_distance is None  # --reach-poses 0
+    # weights trained elsewhere (a GPU box) get their held-out figures here; the record is kept
+    ev = train_depth.main(["--data", str(data), "--evaluate-only", str(tmp_path / "a.pt"),
+                           "--out", str(tmp_path / "e.pt"), "--n-test-84", "2", "--reach-poses", "0"])
+    e = MonoDepth.load(tmp_path / "e.pt")
+    for (k, va), vb in zip(a.net.state_dict().items(), e.net.state_dict().values()):
+        assert torch.equal(va, vb), k
+    eside = json.loads((tmp_path / "e.json").read_text())
+    assert eside["metrics"] == ev["metrics"] and set(ev["metrics"]) == {"test_60x80", "val_60x80", "test_84x84"}
+    # the same weights, stored in float16 (the training run evaluated them in float32)
+    for k in ("abs_rel", "rmse", "delta1", "n_images", "n_images_near"):
+        assert ev["metrics"]["test_60x80"][k] == pytest.approx(full["metrics"]["test_60x80"][k], rel=1e-3), k
+    assert eside["epochs"] == 2 and eside["command"] == side["command"] and "--evaluate-only" in eside["evaluated_by"]
+    assert eside["history"] == side["history"] and e.meta["best_epoch"] == side["best_epoch"]
+    with pytest.raises(ValueError, match="--evaluate-only .*no such weights file"):
+        train_depth.main(["--data", str(data), "--evaluate-only", str(tmp_path / "missing.pt")])
     with pytest.raises(ValueError, match="other options"):
         train_depth.main(common[:3] + ["3"] + common[4:] + ["--run-dir", str(tmp_path / "rb"), "--resume",
                                                             "--out", str(tmp_path / "c.pt")])
@@ -335,6 +350,11 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
         train_depth.main(["--data", str(tmp_path / "none")])
     with pytest.raises(ValueError, match="--reach-poses"):
         train_depth.main(common[:2] + ["--reach-poses", "3"])
+    with pytest.raises(ValueError, match="--device must be cpu, cuda or cuda:N, got 'tpu'"):
+        train_depth.main(common[:2] + ["--device", "tpu"])
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="--device 'cuda': CUDA is not available"):
+            train_depth.main(common[:2] + ["--device", "cuda"])
 
 
 def test_recipe_fine_tunes_from_weights_on_several_roots(tmp_path, capsys):
