@@ -142,8 +142,8 @@ def test_network_shapes_and_range():
     # batching does not change the result (eval mode, no batch statistics)
     px = torch.randint(0, 256, (4, 84, 84, 3), dtype=torch.uint8)
     assert torch.allclose(est(px), torch.cat([est(px[i : i + 1]) for i in range(4)]), atol=1e-5)
-    # weights are small (float16 on disk): a few MB at most
-    assert DEFAULT_WEIGHTS.stat().st_size < 4e6
+    # float16 on disk: the shipped 7.7 M parameters take about 15 MB
+    assert DEFAULT_WEIGHTS.stat().st_size < 16e6
 
 
 def test_metrics_on_known_inputs():
@@ -171,7 +171,8 @@ def test_shipped_weights_and_sidecar(shipped):
     side = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
     for key in ("command", "seed", "data", "epochs", "metrics", "ms_per_frame_cpu"):
         assert key in side, key
-    assert "train_depth.py" in side["command"]
+    # trained by train_depth.py itself or by its main on a GPU box's cache (benchmarks/gpu_depth)
+    assert "train_depth.py" in side["command"] or "gpu_depth/train_cached.py" in side["command"]
     assert side["data"]["image_size"] == [240, 320]
     assert shipped.meta["seed"] == side["seed"]
     assert not shipped.training and shipped.max_depth == 10.0

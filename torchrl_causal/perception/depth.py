@@ -76,7 +76,7 @@ DEFAULT_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "monodepth
 #: The command that produces the shipped weights (quoted in load errors).
 TRAIN_COMMAND: str = (
     "make depth-weights (python -m torchrl_causal.perception.dataset, then "
-    "python recipes/train_depth.py: a base network, then a fine-tune on camera-path frames)"
+    "python recipes/train_depth.py on camera-path frames; minutes on a GPU, hours on one core)"
 )
 _FORMAT = "torchrl_causal.monodepth"
 _VERSION = 1
