@@ -149,6 +149,14 @@ def concat_splits(parts: list[dict]) -> dict:
 # ----------------------------------------------------------------------------- data
 
 
+def lowres_roundtrip(x: torch.Tensor, low_size, size) -> torch.Tensor:
+    """Float images ``[N, 3, H, W]`` (0-255) rendered at ``low_size`` -- resized without
+    antialiasing, like a direct low-resolution render -- and scaled back up to ``size``, as uint8."""
+    lo = F.interpolate(x, size=low_size, mode="bilinear", align_corners=False)
+    lo = F.interpolate(lo, size=size, mode="bilinear", align_corners=False)
+    return lo.round().clamp(0, 255).to(torch.uint8)
+
+
 def load_split(path: Path, work_height: int, limit: int | None = None, chunk: int = 200) -> dict:
     """Reads an ``.npz`` and resizes it once to the working resolution.
 
@@ -170,10 +178,8 @@ def load_split(path: Path, work_height: int, limit: int | None = None, chunk: in
     for s in range(0, N, chunk):
         x = torch.from_numpy(rgb[s : s + chunk]).permute(0, 3, 1, 2).float()
         f = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-        lo = F.interpolate(x, size=low_size, mode="bilinear", align_corners=False)
-        lo = F.interpolate(lo, size=(h, w), mode="bilinear", align_corners=False)
         full[s : s + chunk] = f.round().clamp(0, 255).to(torch.uint8)
-        low[s : s + chunk] = lo.round().clamp(0, 255).to(torch.uint8)
+        low[s : s + chunk] = lowres_roundtrip(x, low_size, (h, w))
         d = torch.from_numpy(depth[s : s + chunk].astype(np.float32)).unsqueeze(1)
         dep[s : s + chunk] = F.interpolate(d, size=(h, w), mode="area")[:, 0].half()
     return {"full": full, "low": low, "depth": dep, "image_size": (H, W), "n": N}
@@ -280,6 +286,18 @@ def heldout_figures(est: MonoDepth, a, roots: list[Path], data_meta: dict, image
     return metrics, timing, reach
 
 
+def _rounded(metrics: dict) -> dict:
+    """Metrics as the sidecar stores them (floats to 4 decimals)."""
+    return {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
+            for k, m in metrics.items()}
+
+
+def _command(argv) -> str:
+    """This invocation as a shell command line (for the sidecar)."""
+    return "python " + " ".join(
+        shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])])
+
+
 def _atomic_save(obj, path: Path):
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
@@ -296,11 +314,8 @@ def evaluate_only(a, argv, roots: list[Path], data_meta: dict) -> dict:
         image_size = tuple(d["rgb"].shape[1:3])
     metrics, timing, reach = heldout_figures(est, a, roots, data_meta, image_size)
     record.update(
-        metrics={k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
-                 for k, m in metrics.items()},
-        ms_per_frame_cpu=timing, reach_calibration=reach,
-        evaluated_by="python " + " ".join(
-            shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
+        metrics=_rounded(metrics), ms_per_frame_cpu=timing, reach_calibration=reach,
+        evaluated_by=_command(argv),
         evaluated_with_torch=str(torch.__version__),
     )
     out = est.save(a.out, meta=record)
@@ -422,7 +437,7 @@ def main(argv=None) -> dict:
     metrics, timing, reach = heldout_figures(est, a, roots, data_meta, train["image_size"])
     sidecar = {
         "name": "monodepth",
-        "command": "python " + " ".join(shlex.quote(x) for x in [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]),
+        "command": _command(argv),
         "seed": a.seed,
         "init": a.init,
         "init_sidecar": parent,
@@ -461,8 +476,7 @@ def main(argv=None) -> dict:
         "train_seconds": round(state["train_seconds"], 1),
         "threads": a.threads,
         "device": a.device,
-        "metrics": {k: {kk: (round(vv, 4) if isinstance(vv, float) else vv) for kk, vv in m.items()}
-                    for k, m in metrics.items()},
+        "metrics": _rounded(metrics),
         "ms_per_frame_cpu": timing,
         "reach_calibration": reach,
         "torch": str(torch.__version__),

@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "recipes"))
@@ -55,10 +54,7 @@ def cached_loader(cache: Path):
         h, w = full.shape[-2:]
         low_size = (84, max(1, round(84 * w / h)))
         for s in range(0, len(full), chunk):
-            x = full[s : s + chunk].float()
-            lo = F.interpolate(x, size=low_size, mode="bilinear", align_corners=False)
-            lo = F.interpolate(lo, size=(h, w), mode="bilinear", align_corners=False)
-            low[s : s + chunk] = lo.round().clamp(0, 255).to(torch.uint8)
+            low[s : s + chunk] = train_depth.lowres_roundtrip(full[s : s + chunk].float(), low_size, (h, w))
         return {"full": full, "low": low, "depth": dep, "image_size": tuple(info["image_size"]), "n": len(full)}
 
     return load
