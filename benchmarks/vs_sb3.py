@@ -19,9 +19,11 @@ recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration
 Figures (one JSON object each):
 
 * ``frames_per_second``: each library trains ``--speed-frames`` frames with no
-  evaluation, the two runs alternated ``--repeats`` times in this one process;
+  evaluation, the runs alternated ``--repeats`` times in this one process;
   the medians and their ratio (target of the "thesis protocol" issue:
-  ``DQNLoop`` >= SB3);
+  ``DQNLoop`` >= SB3). A third run per repeat, ``dqnloop_dqnloss``, is the loop
+  with TorchRL's own ``DQNLoss`` (``loss.stateful=false``) instead of its
+  ``StatefulDQNLoss``: the same numbers bit for bit, with per-call parameter swaps;
 * ``first_success`` (per library): over ``--seeds``, the frames of the first
   periodic greedy evaluation (``--eval-every`` frames, ``--eval-episodes``
   episodes on the thesis scene) that reaches the goal, within ``--frames``;
@@ -31,7 +33,8 @@ Figures (one JSON object each):
   gym-style step SB3 drives, TorchRL's ``step_and_maybe_reset`` loop, the collector with
   4-frame batches, and the same collector with the images dropped by an
   ``ExcludeTransform``) and ``update`` (milliseconds per gradient step, 4 x N/4 steps:
-  the recipe's ``DQNLoss`` update with Adam single-tensor / ``foreach`` / ``fused``, and the
+  TorchRL's ``DQNLoss`` update with Adam single-tensor / ``foreach`` / ``fused``, the loop's
+  ``StatefulDQNLoss``, and the
   same network, batch, Huber loss, clip and Adam written as plain PyTorch).
 
 ::
@@ -250,13 +253,16 @@ def stepping_fps(cfg, frames: int) -> dict:
 
 
 def update_ms(cfg, updates: int) -> dict:
-    """Milliseconds per gradient step on one 32-row batch of real transitions: the recipe's
-    ``DQNLoss`` with Adam single-tensor / ``foreach`` / ``fused``, and plain PyTorch."""
+    """Milliseconds per gradient step on one 32-row batch of real transitions: TorchRL's
+    ``DQNLoss`` with Adam single-tensor / ``foreach`` / ``fused``, the loop's
+    ``StatefulDQNLoss`` (the same loss without per-call parameter swaps) with Adam
+    single-tensor, and plain PyTorch."""
     import warnings
 
     import recipe_utils as ru
     import torch
     import train as train_recipe
+    from torchrl.objectives import DQNLoss
 
     from torchrl_causal.pretrained.policy import FEATURE_SCALES
 
@@ -265,12 +271,16 @@ def update_ms(cfg, updates: int) -> dict:
     actor, _, _ = train_recipe.build_agent(cfg, variant, env, "cpu")
     # the loop owns the target sync, not the loss: TorchRL's warning about it is noise here
     warnings.filterwarnings("ignore", message="No target network updater")
-    loss, optim = train_recipe.build_loss(cfg, actor, env)
+    stateful, optim = train_recipe.build_loss(cfg, actor, env)
+    functional = DQNLoss(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function],
+                         delay_value=True, double_dqn=cfg.loss.double_dqn,
+                         action_space=env.action_spec_unbatched)
+    functional.make_value_estimator(gamma=cfg.loss.gamma)
     n = int(cfg.buffer.batch_size)
     batch = env.rollout(n, break_when_any_done=False).exclude(
         "pixels", "depth", ("next", "pixels"), ("next", "depth"))
     env.close()
-    params = [p for p in loss.parameters() if p.requires_grad]
+    params = [p for p in stateful.parameters() if p.requires_grad]
     group = optim.param_groups[0]
     clip = float(cfg.loss.max_grad_norm)
 
@@ -283,17 +293,19 @@ def update_ms(cfg, updates: int) -> dict:
         return round((time.perf_counter() - t0) / updates * 1e3, 3)
 
     out = {}
-    for name, kw in (("single", {"foreach": False}), ("foreach", {"foreach": True}),
-                     ("fused", {"fused": True})):
+    for name, loss, kw in (("dqnloss_adam_single", functional, {"foreach": False}),
+                           ("stateful_dqnloss_adam_single", stateful, {"foreach": False}),
+                           ("dqnloss_adam_foreach", functional, {"foreach": True}),
+                           ("dqnloss_adam_fused", functional, {"fused": True})):
         opt = torch.optim.Adam(params, lr=group["lr"], eps=group["eps"], **kw)
 
-        def step(opt=opt):
+        def step(opt=opt, loss=loss):
             value = loss(batch)["loss"]
             opt.zero_grad()
             value.backward()
             torch.nn.utils.clip_grad_norm_(params, clip)
             opt.step()
-        out[f"dqnloss_adam_{name}"] = timed(step)
+        out[name] = timed(step)
 
     def mlp():
         return torch.nn.Sequential(torch.nn.Linear(9, 256), torch.nn.ReLU(),
@@ -368,7 +380,9 @@ def main(argv=None) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="vs_sb3_") as tmp:
         if a.speed_frames:
-            fps = {"dqnloop": [], "sb3": []}
+            # the loop with TorchRL's own DQNLoss (loss.stateful=false) runs beside them:
+            # the same numbers, computed with the per-call parameter swaps
+            fps = {"dqnloop": [], "dqnloop_dqnloss": [], "sb3": []}
             starts = min(1000, a.speed_frames // 3)
             for r in range(a.repeats):
                 # eval.episodes=0: the loop's timed part then holds no greedy episodes
@@ -377,14 +391,21 @@ def main(argv=None) -> list[dict]:
                                     [f"loss.learning_starts={starts}", "eval.episodes=0",
                                      *a.override])
                 fps["dqnloop"].append(run_dqnloop(cfg)["fps"])
+                cfg_f = recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}_dqnloss",
+                                      [f"loss.learning_starts={starts}", "eval.episodes=0",
+                                       "loss.stateful=false", *a.override])
+                fps["dqnloop_dqnloss"].append(run_dqnloop(cfg_f)["fps"])
                 fps["sb3"].append(run_sb3(cfg, 0, 0, 1)["fps"])
-            ours, theirs = (statistics.median(fps[k]) for k in ("dqnloop", "sb3"))
+            ours, functional, theirs = (statistics.median(fps[k])
+                                        for k in ("dqnloop", "dqnloop_dqnloss", "sb3"))
             rows.append({"bench": "vs_sb3", "figure": "frames_per_second",
                          "frames": a.speed_frames, "repeats": a.repeats,
-                         "dqnloop": [round(v, 1) for v in fps["dqnloop"]],
-                         "sb3": [round(v, 1) for v in fps["sb3"]],
-                         "dqnloop_median": round(ours, 1), "sb3_median": round(theirs, 1),
-                         "ratio_dqnloop_over_sb3": round(ours / theirs, 3)})
+                         **{k: [round(v, 1) for v in fps[k]] for k in fps},
+                         "dqnloop_median": round(ours, 1),
+                         "dqnloop_dqnloss_median": round(functional, 1),
+                         "sb3_median": round(theirs, 1),
+                         "ratio_dqnloop_over_sb3": round(ours / theirs, 3),
+                         "ratio_dqnloop_dqnloss_over_sb3": round(functional / theirs, 3)})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
             cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)

@@ -404,6 +404,9 @@ def compose_run_config(overrides: list[str], variant: str = "cbn_v2"):
 #: may resume or extend runs that differ in these (``seed`` differs per run by design).
 RUN_ONLY_KEYS = ("seed", "device", "threads", "progress", "output_dir", "checkpoint",
                  "logger", "outputs")
+#: Nested keys that choose how the same numbers are computed (``loss.stateful``: the two
+#: losses give the same runs bit for bit, ``tests/test_stateful_loss.py``).
+IMPLEMENTATION_KEYS = ("loss.stateful",)
 
 
 #: Config keys added after runs were made, with the value that computes what their
@@ -424,7 +427,7 @@ def check_root_configs(root: Path, plan: list[Run], overrides: list[str]) -> Non
     """Refuses a ``--root`` whose run folders hold runs of another config than the grid's
     (another ``--mode``, preset or override), before any job starts: such a run would be
     resumed, or counted as done, under the wrong protocol. Keys of :data:`RUN_ONLY_KEYS`
-    may differ (a run of the grid may have trained on a GPU, for instance), and a key of
+    and :data:`IMPLEMENTATION_KEYS` may differ (a run of the grid may have trained on a GPU, for instance), and a key of
     :data:`ADDED_KEYS` missing from a stored run counts as its neutral value.
 
     Raises:
@@ -448,7 +451,7 @@ def check_root_configs(root: Path, plan: list[Run], overrides: list[str]) -> Non
         want = expected[key]
         missing = object()
         diff = sorted(k for k in set(want) | set(stored)
-                      if k.split(".")[0] not in RUN_ONLY_KEYS
+                      if k.split(".")[0] not in RUN_ONLY_KEYS and k not in IMPLEMENTATION_KEYS
                       and want.get(k, missing) != stored.get(k, missing))
         if diff:
             shown = "; ".join(f"{k}: {stored.get(k, '(absent)')!r} there, "

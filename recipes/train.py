@@ -166,11 +166,17 @@ def build_buffer(cfg: DictConfig, scratch: Path, device: str = "cpu"):
 
 
 def build_loss(cfg: DictConfig, actor, env):
-    """DQNLoss (+ its value estimator) and the optimiser the preset names."""
+    """The DQN loss (TorchRL's ``DQNLoss``; with ``loss.stateful``, the default, the same
+    loss bit for bit without per-call parameter swaps:
+    :class:`~torchrl_causal.training.StatefulDQNLoss`) + its value estimator, and the
+    optimiser the preset names."""
     from torchrl.objectives import DQNLoss
 
-    loss = DQNLoss(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function], delay_value=True,
-                   double_dqn=cfg.loss.double_dqn, action_space=env.action_spec_unbatched)
+    from torchrl_causal.training import StatefulDQNLoss
+
+    cls = StatefulDQNLoss if cfg.loss.get("stateful", True) else DQNLoss
+    loss = cls(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function], delay_value=True,
+               double_dqn=cfg.loss.double_dqn, action_space=env.action_spec_unbatched)
     loss.make_value_estimator(gamma=cfg.loss.gamma)
     if cfg.optim.name == "adam":
         optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)

@@ -43,6 +43,7 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
                           "--override", "env.max_steps=40"])
     speed = rows[0]
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
+    assert speed["dqnloop_dqnloss_median"] > 0 and len(speed["dqnloop_dqnloss"]) == speed["repeats"]
     libs = {r["library"]: r for r in rows[1:]}
     assert set(libs) == {"dqnloop", "sb3"}
     for r in libs.values():
@@ -61,6 +62,7 @@ def test_overheads_figures(tmp_path, monkeypatch):
     for key in ("gym_step", "env_step_and_maybe_reset", "collector_4", "collector_4_no_images"):
         assert len(stepping[key]) == 1 and stepping[key][0] > 0
     for key in ("dqnloss_adam_single", "dqnloss_adam_foreach", "dqnloss_adam_fused",
+                "stateful_dqnloss_adam_single",
                 "plain_torch_adam_single"):
         assert 0 < update[key] < 1000
     with pytest.raises(SystemExit):

@@ -4,6 +4,8 @@
   schema: collector, replay buffer (+ causal-learning hook), DQN loss, target
   sync, the gate's epsilon, evaluation, checkpoints and exact resume
   (:mod:`torchrl_causal.training.loop`).
+* :class:`StatefulDQNLoss` -- TorchRL's ``DQNLoss``, bit for bit, without its
+  per-call parameter swaps (:mod:`torchrl_causal.training.loss`).
 * :func:`evaluate` / :func:`seed_transforms` -- greedy evaluation
   (:mod:`torchrl_causal.training.evaluation`).
 * :class:`OracleImitation` / :class:`ImitationConfig` -- a teacher phase:
@@ -33,12 +35,14 @@ from torchrl_causal.training.evaluation import (
 from torchrl_causal.training.flightmap import plot_flight_map, plot_flight_maps
 from torchrl_causal.training.imitation import ImitationConfig, OracleImitation, margin_loss
 from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
+from torchrl_causal.training.loss import StatefulDQNLoss
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 from torchrl_causal.training.video import OUTCOME_LABELS, record_episodes
 
 __all__ = [
     "DQNLoop",
     "LoopConfig",
+    "StatefulDQNLoss",
     "RUN_FILES",
     "evaluate",
     "spl_of",

@@ -171,7 +171,6 @@ class OracleImitation:
     def __init__(self, env, actor, config: ImitationConfig | None = None, *,
                  replay_buffer=None, loss=None, device="cpu"):
         from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-        from torchrl.objectives import DQNLoss
 
         from ..envs.oracle import OraclePolicy
 
@@ -188,8 +187,10 @@ class OracleImitation:
         self.buffer = replay_buffer if replay_buffer is not None else TensorDictReplayBuffer(
             storage=LazyTensorStorage(50_000), batch_size=self.config.batch_size)
         if loss is None:
-            loss = DQNLoss(actor, loss_function="smooth_l1", delay_value=True, double_dqn=True,
-                           action_space=env.action_spec)
+            from .loss import StatefulDQNLoss
+
+            loss = StatefulDQNLoss(actor, loss_function="smooth_l1", delay_value=True,
+                                   double_dqn=True, action_space=env.action_spec)
             loss.make_value_estimator(gamma=0.95)
         self.loss = loss
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=self.config.lr)

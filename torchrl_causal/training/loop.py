@@ -12,6 +12,7 @@ DQN). Per collected frame it
    whose transform (a :class:`~torchrl_causal.data.CausalLearningHook`) feeds
    the causal learner and relearns the CBNs every ``k`` frames (Alg. 2);
 3. takes ``updates_per_frame`` minibatch steps of :class:`~torchrl.objectives.DQNLoss`
+   (by default its swap-free form, :class:`~torchrl_causal.training.StatefulDQNLoss`)
    and syncs the target network (:class:`~torchrl.objectives.HardUpdate`);
 4. evaluates the greedy policy every ``eval_interval_frames`` and writes a
    checkpoint every ``checkpoint_interval_frames`` (at an episode end).
@@ -332,8 +333,9 @@ class DQNLoop:
         hook: the :class:`~torchrl_causal.data.CausalLearningHook` that feeds
             the causal learner (``None`` for a plain DQN). Appended to the
             replay buffer's transforms (unless the buffer already has it).
-        loss: a :class:`~torchrl.objectives.DQNLoss` (default: one built on
-            ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
+        loss: a :class:`~torchrl.objectives.DQNLoss` (default: a
+            :class:`~torchrl_causal.training.StatefulDQNLoss`, the same loss bit for bit,
+            built on ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
         optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``).
         replay_buffer: a :class:`~torchrl.data.TensorDictReplayBuffer` (default:
             ``LazyTensorStorage(config.buffer_size)`` on ``config.device``).
@@ -405,7 +407,9 @@ class DQNLoop:
         guards: Sequence = (),
     ):
         from tensordict.nn import TensorDictSequential
-        from torchrl.objectives import DQNLoss, HardUpdate
+        from torchrl.objectives import HardUpdate
+
+        from .loss import StatefulDQNLoss
 
         config = LoopConfig() if config is None else config
         if not isinstance(config, LoopConfig):
@@ -418,8 +422,9 @@ class DQNLoop:
         self.policy = TensorDictSequential(actor, explorer, *self.guards)
         self.device = torch.device(cfg.device)
         if loss is None:
-            loss = DQNLoss(actor, loss_function=cfg.loss_function, delay_value=True,
-                           double_dqn=cfg.double_dqn, action_space=env.action_spec_unbatched)
+            loss = StatefulDQNLoss(actor, loss_function=cfg.loss_function, delay_value=True,
+                                   double_dqn=cfg.double_dqn,
+                                   action_space=env.action_spec_unbatched)
             loss.make_value_estimator(gamma=cfg.gamma)
         self.loss = loss
         self.optimizer = optimizer or torch.optim.Adam(loss.parameters(), lr=cfg.lr)
