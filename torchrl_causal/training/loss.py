@@ -22,7 +22,6 @@ import copy
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.envs.utils import step_mdp
 from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
@@ -115,7 +114,9 @@ class StatefulDQNLoss(DQNLoss):
         else:
             pred_val_index = (pred_val * action.to(torch.float)).sum(-1)
 
-        step_td = step_mdp(td_copy, keep_other=False)
+        # the next observations (DQNLoss: step_mdp(keep_other=False); the Q-network reads the
+        # same entries, and its outputs land in this shallow copy only)
+        step_td = td_copy.get("next").clone(False)
         target_net = self._target()
         if self.double_dqn:
             step_td_copy = step_td.clone(False)
