@@ -23,7 +23,9 @@ Figures (one JSON object each):
   the medians and their ratio (target of the "thesis protocol" issue:
   ``DQNLoop`` >= SB3). A third run per repeat, ``dqnloop_dqnloss``, is the loop
   with TorchRL's own ``DQNLoss`` (``loss.stateful=false``) instead of its
-  ``StatefulDQNLoss``: the same numbers bit for bit, with per-call parameter swaps;
+  ``StatefulDQNLoss``: the same numbers bit for bit, with per-call parameter swaps.
+  ``paired_*``: the per-repeat ratios, their geometric mean and its 95 % interval
+  (the runs of one repeat are back to back, so a slow spell of the machine slows both);
 * ``first_success`` (per library): over ``--seeds``, the frames of the first
   periodic greedy evaluation (``--eval-every`` frames, ``--eval-episodes``
   episodes on the thesis scene) that reaches the goal, within ``--frames``;
@@ -331,6 +333,24 @@ def update_ms(cfg, updates: int) -> dict:
     return out
 
 
+def paired_ratio(ours, theirs) -> dict:
+    """Per-repeat ratios ``ours[i] / theirs[i]`` (the runs of one repeat ran back to back,
+    so a slow spell of the machine slows both), their geometric mean and its 95 % Student-t
+    interval (on the log ratios; ``None`` with one repeat)."""
+    import math
+
+    import numpy as np
+    from results import mean_ci95
+
+    ratios = [o / t for o, t in zip(ours, theirs)]
+    logs = np.log(np.asarray(ratios, dtype=float))
+    mean, half = mean_ci95(logs[:, None])
+    ci = (None if len(ratios) < 2 else
+          [round(math.exp(mean[0] - half[0]), 3), round(math.exp(mean[0] + half[0]), 3)])
+    return {"per_repeat": [round(r, 3) for r in ratios],
+            "geomean": round(math.exp(mean[0]), 3), "ci95": ci}
+
+
 def first_success(evals) -> int | None:
     return next((f for f, s in evals if s > 0), None)
 
@@ -405,7 +425,10 @@ def main(argv=None) -> list[dict]:
                          "dqnloop_dqnloss_median": round(functional, 1),
                          "sb3_median": round(theirs, 1),
                          "ratio_dqnloop_over_sb3": round(ours / theirs, 3),
-                         "ratio_dqnloop_dqnloss_over_sb3": round(functional / theirs, 3)})
+                         "ratio_dqnloop_dqnloss_over_sb3": round(functional / theirs, 3),
+                         "paired_dqnloop_over_sb3": paired_ratio(fps["dqnloop"], fps["sb3"]),
+                         "paired_dqnloop_over_dqnloop_dqnloss": paired_ratio(
+                             fps["dqnloop"], fps["dqnloop_dqnloss"])})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
             cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)

@@ -44,12 +44,23 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
     speed = rows[0]
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
     assert speed["dqnloop_dqnloss_median"] > 0 and len(speed["dqnloop_dqnloss"]) == speed["repeats"]
+    paired = speed["paired_dqnloop_over_sb3"]
+    assert paired["per_repeat"] == [round(speed["dqnloop"][0] / speed["sb3"][0], 3)]
+    assert paired["ci95"] is None  # one repeat: no interval
     libs = {r["library"]: r for r in rows[1:]}
     assert set(libs) == {"dqnloop", "sb3"}
     for r in libs.values():
         assert len(r["final_success"]) == 1 and 0.0 <= r["final_success"][0] <= 1.0
     with pytest.raises(SystemExit):
         _bench().main(["--frames", "0"])
+
+
+def test_paired_ratio():
+    p = _bench().paired_ratio([2.0, 4.0, 3.0], [1.0, 2.0, 3.0])
+    assert p["per_repeat"] == [2.0, 2.0, 1.0]
+    assert p["geomean"] == round(4 ** (1 / 3), 3)
+    lo, hi = p["ci95"]
+    assert lo < p["geomean"] < hi
 
 
 def test_overheads_figures(tmp_path, monkeypatch):
