@@ -215,6 +215,22 @@ def test_hook_already_on_the_buffer_is_not_added_twice(tmp_path):
     assert sum(t is base.hook for t in loop.replay_buffer._transform) == 1
 
 
+def test_a_fresh_start_replaces_the_records_of_an_earlier_start(tmp_path):
+    """A run cut short before its first checkpoint, then started again in its folder (a
+    grid's checkpoint.resume=auto does this), records the second start only."""
+    opts = dict(checkpoint_interval_frames=10_000, final_eval_episodes=2)
+    clean = _gridnav_loop(tmp_path / "clean", 400, **opts).run()
+    cut = _gridnav_loop(tmp_path / "again", 400, stop_after_frames=150, **opts)
+    cut.run()
+    (tmp_path / "again" / "checkpoints" / "last.pt").unlink()  # killed before a checkpoint
+    assert len(pd.read_csv(tmp_path / "again" / "episodes.csv")) > 0
+    again = _gridnav_loop(tmp_path / "again", 400, **opts).run()
+    assert clean["frames"] == again["frames"] == 400
+    for name in ("episodes.csv", "eval.csv", "relearns.csv"):
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "clean" / name),
+                                      pd.read_csv(tmp_path / "again" / name))
+
+
 def test_finished_run_keeps_no_second_copy_of_the_buffer(tmp_path):
     opts = dict(checkpoint_interval_frames=200, final_eval_episodes=0)
     _gridnav_loop(tmp_path / "lean", 600, **opts).run()

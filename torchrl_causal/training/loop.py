@@ -921,6 +921,11 @@ class DQNLoop:
             return_same_td=True,
         )
         self._recs = self._records()
+        if not resume:
+            # a fresh run replaces the folder's records: rows of an earlier start cut
+            # short before its first checkpoint would otherwise stay ahead of this run's
+            for rec in self._recs:
+                rec.truncate(0)
         if cfg.overlap:  # a resumed run loads both from its checkpoint
             self._rb_rng.manual_seed(cfg.seed * 1_000_003 + 12_345)
             self._synced_at = None
