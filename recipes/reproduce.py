@@ -571,6 +571,62 @@ def export_records(root: Path, dest: Path) -> list[Path]:
     return written
 
 
+def _restarts(rows: list[dict], name: str) -> list[int]:
+    """Row indices where a CSV of a run starts over: episode / relearn 1 again, or the
+    first periodic evaluation's (frames, layout) again."""
+    if name == "eval.csv":
+        first = (rows[0]["frames"], rows[0]["layout"])
+        return [i for i, r in enumerate(rows) if i and (r["frames"], r["layout"]) == first]
+    key = "episode" if name == "episodes.csv" else "relearn"
+    return [i for i, r in enumerate(rows) if i and r[key] == "1"]
+
+
+def repair_records(root: Path) -> dict:
+    """Drops the rows of earlier starts from the runs' ``episodes.csv``, ``eval.csv`` and
+    ``relearns.csv`` under ``root``. Before a fix of 2026-11-27, a run cut short before its
+    first checkpoint and started again in its folder (``checkpoint.resume=auto``) kept the
+    first start's rows ahead of its own. Each file is kept from its last start, and only when
+    every dropped segment is an exact copy of the rows kept first (a start with the same
+    seed is deterministic); otherwise nothing is written.
+
+    Returns:
+        ``{file: {"rows_before", "rows_kept", "dropped_segments"}}`` for each file changed.
+
+    Raises:
+        ValueError: naming a file whose earlier rows are not a copy of its last start's.
+    """
+    import csv
+
+    report = {}
+    for run in results.load_runs(root):
+        for name in ("episodes.csv", "eval.csv", "relearns.csv"):
+            path = run["dir"] / name
+            if not path.exists():
+                continue
+            with open(path, newline="") as f:
+                reader = csv.reader(f)
+                header = next(reader, None)
+                raw = list(reader)
+            if header is None or not raw:
+                continue
+            cuts = _restarts([dict(zip(header, r)) for r in raw], name)
+            if not cuts:
+                continue
+            kept, starts = raw[cuts[-1]:], [0, *cuts]
+            for a, b in zip(starts, starts[1:]):
+                if raw[a:b] != kept[:b - a]:
+                    raise ValueError(
+                        f"Invalid option --repair-records: {path} rows {a + 1}-{b} are not a "
+                        "copy of its last start's first rows; left as it is")
+            with open(path, "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(header)
+                w.writerows(kept)
+            report[str(path)] = {"rows_before": len(raw), "rows_kept": len(kept),
+                                 "dropped_segments": [b - a for a, b in zip(starts, starts[1:])]}
+    return report
+
+
 def aggregate(root: Path) -> dict:
     """Draws Fig. 5.3 / 5.4-style figures and the summary tables from all runs under ``root``."""
     fig_dir, tab_dir = root / "figures", root / "tables"
@@ -790,6 +846,10 @@ def main(argv=None) -> dict:
                         "summaries, episode/eval/relearn CSVs, tables; no checkpoints or "
                         "models) to this folder, from which --aggregate-only --root draws "
                         "the same figures")
+    p.add_argument("--repair-records", action="store_true",
+                   help="first drop the rows that runs cut short before their first checkpoint "
+                        "left ahead of their restart in the CSVs under --root (grids made "
+                        "before 2026-11-27; each dropped segment must be an exact copy)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the multirun commands and the estimate's formula, train nothing")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
@@ -827,6 +887,9 @@ def main(argv=None) -> dict:
     if args.frames is not None:
         extra.append(f"collector.total_frames={args.frames}")
     overrides = merge_overrides(MODES[args.mode]["overrides"], extra)
+    if args.repair_records:
+        repaired = repair_records(root)
+        print(f"Records repaired: {json.dumps(repaired)}", flush=True)
     if not args.aggregate_only:
         plan = run_plan(root, args.mode, seeds, args.variants, args.k, args.groups)
         check_root_configs(root, plan, overrides)  # before the warm-up and any job

@@ -299,3 +299,30 @@ def test_a_second_separator_among_the_overrides_is_dropped(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "env.max_steps=30" in printed and "threads=1" in printed
     assert " -- " not in printed.replace("' -- '", "")
+
+
+def test_repair_records_drops_the_rows_of_earlier_starts(tmp_path, capsys):
+    """--repair-records keeps each CSV from its last start when the earlier rows are a copy."""
+    full = reproduce.MODES["full"]["overrides"]
+    run = tmp_path / "variants" / "cbn_v2" / "seed_0"
+    _write_run_config(run, [*full, "seed=0"], "cbn_v2")
+    rows = [f"{i},{10 * i},{i / 10}" for i in range(1, 6)]
+    (run / "episodes.csv").write_text("episode,frames,reward\n" + "\n".join(rows[:2] + rows) + "\n")
+    (run / "eval.csv").write_text("frames,episodes,layout,success_rate\n5000,3,thesis,0\n"
+                                  "5000,3,thesis,0\n10000,5,thesis,1\n")
+    (run / "relearns.csv").write_text("relearn,frames,episode\n1,200,2\n2,400,4\n")
+    assert reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_v2",
+                           "--groups", "variants", "--dry-run", "--no-estimate",
+                           "--repair-records", "--root", str(tmp_path)]) == {}
+    assert "Records repaired" in capsys.readouterr().out
+    assert (run / "episodes.csv").read_text().splitlines() == ["episode,frames,reward", *rows]
+    assert (run / "eval.csv").read_text().splitlines()[1:] == ["5000,3,thesis,0",
+                                                               "10000,5,thesis,1"]
+    assert len((run / "relearns.csv").read_text().splitlines()) == 3  # nothing to drop
+    assert reproduce.repair_records(tmp_path) == {}  # idempotent
+    # an earlier start that logged other episodes is not a copy: refused, file untouched
+    text = "episode,frames,reward\n1,10,0.5\n" + "\n".join(rows) + "\n"
+    (run / "episodes.csv").write_text(text)
+    with pytest.raises(ValueError, match=r"--repair-records: .*episodes.csv rows 1-1 are not"):
+        reproduce.repair_records(tmp_path)
+    assert (run / "episodes.csv").read_text() == text
