@@ -67,7 +67,7 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
-            "--out", str(out)]
+            "--out", str(out), "--overwrite"]
     for key, flag in (("detector", "--detector-weights"), ("depth", "--depth-weights")):
         if (weights or {}).get(key) is not None:
             argv += [flag, str(weights[key])]

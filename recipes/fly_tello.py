@@ -28,6 +28,8 @@ to the goal box: for a "reached" episode, the reading the arrival rule fired on)
 ``onboard.mp4`` (the decoded onboard video, H.264 via PyAV)
 and ``summary.json`` (success rates with 95 % Wilson intervals; with
 ``--compare-sim N`` also the same policy's greedy episodes in ``DroneNavEnv``).
+An ``--out`` that already holds a flight is refused before take-off unless
+``--overwrite`` replaces it.
 """
 
 from __future__ import annotations
@@ -147,6 +149,9 @@ def parse_args(argv=None):
                         "(default: the run's seed); another seed flies other episodes")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the flight already recorded in --out (episodes.csv, "
+                        "onboard.mp4, summary.json); without it such an --out is refused")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
@@ -176,6 +181,11 @@ def parse_args(argv=None):
         a.out = a.out or str(Path("outputs") / "tello" / "generalist")
     if not (Path(a.run) / "config.yaml").is_file():
         p.error(f"--run {a.run!r} has no config.yaml: not a run folder of recipes/train.py")
+    a.out = a.out or str(Path(a.run) / (f"tello_{a.host}" if a.host else "tello_emulator"))
+    if (Path(a.out) / "episodes.csv").exists() and not a.overwrite:
+        # a second flight would add its rows to the first's and replace its video
+        p.error(f"--out {a.out} holds a recorded flight (episodes.csv): give another --out, "
+                "or --overwrite to replace it")
     if a.perception not in PERCEPTIONS and ":" not in a.perception:
         p.error(f"--perception must be one of {', '.join(PERCEPTIONS)} or module:factory, "
                 f"got {a.perception!r}")
@@ -219,6 +229,10 @@ def parse_args(argv=None):
         p.error(f"--perception {a.perception} exists only in the emulator: a real drone needs "
                 "RGB-only perception (--perception rgb)")
     return a
+
+
+#: What one flight writes into ``--out`` (``--overwrite`` replaces them).
+FLIGHT_FILES = ("episodes.csv", "onboard.mp4", "summary.json")
 
 
 #: ``--reach-offset`` of ``--arrival-head auto``: one 90th-percentile range error of the
@@ -456,6 +470,9 @@ def main(argv=None) -> dict:
     seed = int(cfg.seed if args.seed is None else args.seed)
     args.out = args.out or str(run / (f"tello_{args.host}" if real else "tello_emulator"))
     Path(args.out).mkdir(parents=True, exist_ok=True)
+    if getattr(args, "overwrite", False):  # parse_args refused an --out with a flight without it
+        for name in FLIGHT_FILES:
+            (Path(args.out) / name).unlink(missing_ok=True)
     summary: dict = {"run": str(run), "target": args.host or "emulator",
                      "episodes": args.episodes, "perception": args.perception,
                      "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}

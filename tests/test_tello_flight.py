@@ -57,6 +57,15 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
         frames = sum(1 for _ in c.decode(video=0))
     assert frames >= rows["length"].sum()
     assert json.loads((out / "summary.json").read_text())["success_sim"] == emu
+    # a second flight into that folder is refused before it flies (its rows would follow
+    # the first flight's, its video replace it), unless told to replace the first
+    with pytest.raises(SystemExit):
+        fly_tello.parse_args(["--run", str(POLICY), "--out", str(out)])
+    again = fly_tello.main(["--run", str(POLICY), "--episodes", "1", "--no-video",
+                            "--out", str(out), "--overwrite"])
+    assert again["episodes"] == 1
+    assert list(pd.read_csv(out / "episodes.csv")["episode"]) == [1]
+    assert not (out / "onboard.mp4").exists()  # the first flight's video went with it
 
 
 def test_bad_options_are_named_before_any_flight(capsys):
