@@ -45,7 +45,8 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
     assert speed["dqnloop_dqnloss_median"] > 0 and len(speed["dqnloop_dqnloss"]) == speed["repeats"]
     paired = speed["paired_dqnloop_over_sb3"]
-    assert paired["per_repeat"] == [round(speed["dqnloop"][0] / speed["sb3"][0], 3)]
+    # one repeat: its ratio is the medians' (from the unrounded frames/s)
+    assert paired["per_repeat"] == [speed["ratio_dqnloop_over_sb3"]] == [paired["geomean"]]
     assert paired["ci95"] is None  # one repeat: no interval
     libs = {r["library"]: r for r in rows[1:]}
     assert set(libs) == {"dqnloop", "sb3"}
