@@ -38,7 +38,9 @@ commands and the estimate's formula without training.
 Already finished runs (with a ``summary.json``) are not launched again and
 interrupted ones resume from their checkpoint (every job runs with
 ``checkpoint.resume=auto``), so an interrupted reproduction can simply be
-started again. Extra hydra overrides for every run, and the launcher's own
+started again. ``--verify RUN ...`` re-trains the first frames of finished runs
+with this checkout on this machine and compares their episode rows with the
+records, e.g. before runs of several sessions or machines are pooled. Extra hydra overrides for every run, and the launcher's own
 ``hydra.launcher.*`` options, go after ``--``, e.g. ``-- buffer.size=50000``.
 
 Example::
@@ -282,9 +284,11 @@ def run_with_ray(pending: list[Run], overrides: list[str], jobs: int | None = No
     repository and ``--root`` at the same paths (a shared file system, as for SLURM).
     Ray runs ``floor(CPUs / cpus_per_run)`` tasks at a time per node.
     """
+    # seed-major, as the multiruns (Ray starts tasks in the order they are submitted): a
+    # grid cut short holds every configuration's first seeds, not all seeds of the first
     runs = [(r, [sys.executable, str(TRAIN),
                  *r.argv(merge_overrides(overrides, ["checkpoint.resume=auto"]))])
-            for r in pending]
+            for r in sorted(pending, key=lambda r: r.seed)]
     for r, cmd in runs:
         print(f"Ray task: {shlex.join(cmd)}", flush=True)
     if dry_run or not runs:
@@ -627,6 +631,49 @@ def repair_records(root: Path) -> dict:
     return report
 
 
+def verify_run(run_dir: Path, frames: int = 1500) -> dict:
+    """Re-trains the first ``frames`` frames of a finished run with this checkout's code on
+    this machine (its own ``config.yaml``, in a temporary folder) and compares the episode
+    rows with the run's ``episodes.csv``: whether code or machine changed the run's course
+    (CPU kernels differ between machines in the last bits, which a greedy argmax can
+    amplify), e.g. before runs of several sessions are pooled in one figure.
+
+    Returns:
+        ``{"run", "frames", "episodes_compared", "identical", "first_difference"}``:
+        the episodes that ended within ``frames`` (all but the re-run's last, cut short),
+        how many of them match the record in every column, and the first that does not
+        (``None`` when all do).
+
+    Raises:
+        ValueError: naming ``run_dir`` without ``config.yaml`` / ``episodes.csv``.
+        RuntimeError: with the re-run's error output when it fails.
+    """
+    run_dir = Path(run_dir)
+    for name in ("config.yaml", "episodes.csv"):
+        if not (run_dir / name).is_file():
+            raise ValueError(f"Invalid option --verify {run_dir}: no {name} (not a run folder "
+                             "of recipes/train.py)")
+    with tempfile.TemporaryDirectory(prefix="reproduce_verify_") as tmp:
+        cmd = [sys.executable, str(TRAIN), "--config-dir", str(run_dir.resolve()),
+               "--config-name", "config", f"collector.total_frames={frames}",
+               "collector.total_episodes=null", "eval.final_episodes=0",
+               "checkpoint.resume=false", "outputs.draw_cbns=false", "logger.backend=none",
+               "progress=false", f"output_dir={_hydra_value(str(Path(tmp) / 'run'))}"]
+        proc = subprocess.run(cmd, env=job_env(), capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"the re-run of {run_dir} failed ({shlex.join(cmd)}):\n"
+                               f"{proc.stderr[-3000:]}")
+        new = pd.read_csv(Path(tmp) / "run" / "episodes.csv")
+    old = pd.read_csv(run_dir / "episodes.csv")
+    cols = [c for c in new.columns if c in old.columns]
+    n = min(len(new) - 1, len(old))  # the re-run's last episode was cut by the frame limit
+    same = (new[cols].iloc[:n].reset_index(drop=True)
+            == old[cols].iloc[:n].reset_index(drop=True)).all(axis=1)
+    first = None if same.all() else int(new["episode"].iloc[int((~same).to_numpy().argmax())])
+    return {"run": str(run_dir), "frames": frames, "episodes_compared": int(n),
+            "identical": int(same.sum()), "first_difference": first}
+
+
 def aggregate(root: Path) -> dict:
     """Draws Fig. 5.3 / 5.4-style figures and the summary tables from all runs under ``root``."""
     fig_dir, tab_dir = root / "figures", root / "tables"
@@ -705,6 +752,12 @@ def aggregate(root: Path) -> dict:
         (tab_dir / "summary.md").write_text(md)
         out["tables"].append(str(tab_dir / "summary.md"))
         out["tables"].append(str(_write_ordering(finals, tab_dir / "ordering.md")))
+    # Fig. 5.3's runs ranked the same way: cbn_v2 at each k (k = 200: the variant grid's runs)
+    kfinals = {f"CBN-DQN V2 k={k}": pd.DataFrame([_final_eval(r["dir"]) for r in k_runs
+                                                  if r["k"] == k])
+               for k in sorted({r["k"] for r in k_runs})}
+    if kfinals:
+        out["tables"].append(str(_write_ordering(kfinals, tab_dir / "ordering_k.md")))
     v2_tables = []
     for r in var_runs:
         t = r["dir"] / "tables" / "table_5_1.md"
@@ -746,7 +799,8 @@ MIN_SEEDS_TO_ORDER = 3
 
 
 def _write_ordering(finals: dict, path: Path) -> Path:
-    """The variants ranked by mean final greedy success per evaluation layout set, each
+    """The runs of ``finals`` (variants, or ``cbn_v2`` at each k) ranked by mean final
+    greedy success per evaluation layout set, each
     with its 95 % t-interval, and every pair's difference with its 95 % Welch interval:
     a pair is told apart only where that interval excludes 0, and only with at least
     ``MIN_SEEDS_TO_ORDER`` seeds on each side."""
@@ -852,8 +906,29 @@ def main(argv=None) -> dict:
                         "before 2026-11-27; each dropped segment must be an exact copy)")
     p.add_argument("--dry-run", action="store_true",
                    help="print the multirun commands and the estimate's formula, train nothing")
+    p.add_argument("--verify", nargs="+", type=Path, metavar="RUN",
+                   help="instead of a grid: re-train the first --verify-frames frames of these "
+                        "finished runs with this code on this machine and compare their episode "
+                        "rows with the records (one JSON line per run)")
+    p.add_argument("--verify-frames", type=int, default=1500,
+                   help="frames each --verify re-run trains (more than the run's "
+                        "loss.learning_starts; default 1500)")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
     args = p.parse_args(argv)
+    if args.verify:
+        if args.verify_frames < 1:
+            raise ValueError(f"Invalid option --verify-frames={args.verify_frames}: expected "
+                             "an integer >= 1")
+        for run in args.verify:  # every folder before the first re-run
+            for name in ("config.yaml", "episodes.csv"):
+                if not (run / name).is_file():
+                    raise ValueError(f"Invalid option --verify {run}: no {name} (not a run "
+                                     "folder of recipes/train.py)")
+        checks = []
+        for run in args.verify:
+            checks.append(verify_run(run, args.verify_frames))
+            print(json.dumps(checks[-1]), flush=True)
+        return {"verify": checks}
     launcher = args.launcher
     if not args.aggregate_only:
         check_launcher(launcher)  # unknown name or missing plugin: before any work

@@ -191,6 +191,23 @@ def test_resume_continues_exactly(tmp_path):
     # between different runs (one variant here: no pair)
     ordering = (root / "tables" / "ordering.md").read_text()
     assert "#### thesis" in ordering and "| 1 | CBN-DQN V2 | 2 |" in ordering
+    # the k sweep ranked the same way (here the two cbn_v2 runs are its only k)
+    k = json.loads((full / "summary.json").read_text())["k"]
+    ordering_k = (root / "tables" / "ordering_k.md").read_text()
+    assert "#### thesis" in ordering_k and f"| 1 | CBN-DQN V2 k={k} | 2 |" in ordering_k
+    # --verify: the first 200 frames re-trained here match the record row for row; a
+    # record altered in its second episode is caught there (one re-run checks both)
+    altered = tmp_path / "altered"
+    shutil.copytree(full, altered)
+    eps = pd.read_csv(altered / "episodes.csv")
+    eps.loc[1, "reward"] += 1.0
+    eps.to_csv(altered / "episodes.csv", index=False)
+    check = reproduce.verify_run(altered, frames=200)
+    assert check["episodes_compared"] >= 2
+    assert check["identical"] == check["episodes_compared"] - 1
+    assert check["first_difference"] == int(eps.loc[1, "episode"])
+    with pytest.raises(ValueError, match="--verify"):
+        reproduce.main(["--verify", str(altered), str(tmp_path / "nothing")])
     # the grid's time: both runs' loop seconds, summed
     secs = sum(json.loads((d / "summary.json").read_text())["loop_seconds"] for d in (full, cut))
     assert out["grid_time"]["variants"]["runs"] == 2

@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -241,6 +242,19 @@ def _write_run_config(run_dir, overrides, variant):
     run_dir.mkdir(parents=True)
     cfg = reproduce.compose_run_config(overrides, variant)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+
+
+def test_ray_tasks_go_seed_major(tmp_path, capsys):
+    """--launcher ray submits one task per run, every configuration's seed 0 before any
+    seed 1 (as the multiruns do), so a grid cut short holds the first seeds of all."""
+    assert reproduce.main(["--mode", "full", "--seeds", "2", "--launcher", "ray",
+                           "--variants", "cbn_p", "cbn_pn", "--groups", "variants",
+                           "--dry-run", "--no-estimate", "--root", str(tmp_path)]) == {}
+    tasks = [line for line in capsys.readouterr().out.splitlines()
+             if line.startswith("Ray task:")]
+    order = [(re.search(r"--config-name (\S+)", t)[1], re.search(r" seed=(\d)", t)[1])
+             for t in tasks]
+    assert order == [("cbn_p", "0"), ("cbn_pn", "0"), ("cbn_p", "1"), ("cbn_pn", "1")]
 
 
 def test_root_of_another_config_is_refused_before_any_job(tmp_path, capsys):
