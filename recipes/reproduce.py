@@ -712,11 +712,12 @@ def aggregate(root: Path) -> dict:
     if kgroups:
         out["figures"].append(str(results.plot_reward_curves(
             kgroups, 20, fig_dir / "fig5_3_k_sweep.png", vlines=vlines,
-            title="CBN-DQN V2, episode reward per k (cf. thesis Fig. 5.3); "
-                  "dashed: first CBN (mean over seeds)")))
+            title="CBN-DQN V2, episode reward per k (cf. thesis Fig. 5.3)\n"
+                  "dashed: episode of the first CBN (mean over seeds)")))
         out["figures"].append(str(results.plot_reward_curves(
             ksuccess, 20, fig_dir / "success_k_sweep.png", ylabel="success", vlines=vlines,
-            title="CBN-DQN V2, success rate per k; dashed: first CBN (mean over seeds)")))
+            title="CBN-DQN V2, success rate per k\n"
+                  "dashed: episode of the first CBN (mean over seeds)")))
 
     rows, finals = [], {}
     for label, rs in [(ru.VARIANTS[v].label, [r for r in var_runs if r["variant"] == v])
@@ -791,6 +792,9 @@ def _write_table_5_1(tables: list, path: Path) -> Path:
         rows, ["action", "seeds", *cols],
         f"Table 5.1 over {len(tables)} CBN-DQN V2 run(s): mean +- half-width of its 95 % "
         "t-interval over seeds (edges common with the expert CBN, first / last learned CBN)"))
+    # the same rows as CSV (docs/results.rst shows it with a csv-table)
+    pd.DataFrame(rows, columns=["action", "seeds", *cols]).to_csv(path.with_suffix(".csv"),
+                                                                   index=False)
     return path
 
 

@@ -187,6 +187,9 @@ def test_resume_continues_exactly(tmp_path):
     own = pd.read_csv(full / "tables" / "table_5_1.csv")
     first = own.iloc[0]
     assert f"| {first['action']} | 2 | {first['expert_edges']:.2f} +- 0.00 |" in t51
+    t51_csv = pd.read_csv(root / "tables" / "table_5_1.csv")  # the same rows, for the docs
+    assert list(t51_csv["action"]) == list(own["action"]) and (t51_csv["seeds"] == 2).all()
+    assert t51_csv["expert_edges"].iloc[0] == f"{first['expert_edges']:.2f} +- 0.00"
     # the measured ordering: one ranked block per evaluation layout set, a pair row only
     # between different runs (one variant here: no pair)
     ordering = (root / "tables" / "ordering.md").read_text()
