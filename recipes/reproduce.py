@@ -631,6 +631,16 @@ def repair_records(root: Path) -> dict:
     return report
 
 
+def min_verify_frames(run_dir: Path) -> int:
+    """The fewest frames a ``--verify`` re-run of ``run_dir`` may train: the loop refuses a
+    budget in which no gradient step runs or the target network is never synced."""
+    from omegaconf import OmegaConf
+
+    loss = OmegaConf.load(Path(run_dir) / "config.yaml").loss
+    return int(loss.learning_starts) + math.ceil(int(loss.target_update_interval)
+                                                 / float(loss.updates_per_frame)) + 1
+
+
 def verify_run(run_dir: Path, frames: int = 1500) -> dict:
     """Re-trains the first ``frames`` frames of a finished run with this checkout's code on
     this machine (its own ``config.yaml``, in a temporary folder) and compares the episode
@@ -640,12 +650,13 @@ def verify_run(run_dir: Path, frames: int = 1500) -> dict:
 
     Returns:
         ``{"run", "frames", "episodes_compared", "identical", "first_difference"}``:
-        the episodes that ended within ``frames`` (all but the re-run's last, cut short),
-        how many of them match the record in every column, and the first that does not
-        (``None`` when all do).
+        the episodes that ended within ``frames`` (the loop records finished episodes
+        only), how many of them match the record in every column, and the first that
+        does not (``None`` when all do).
 
     Raises:
-        ValueError: naming ``run_dir`` without ``config.yaml`` / ``episodes.csv``.
+        ValueError: naming ``run_dir`` without ``config.yaml`` / ``episodes.csv``, or
+            ``frames`` below :func:`min_verify_frames`.
         RuntimeError: with the re-run's error output when it fails.
     """
     run_dir = Path(run_dir)
@@ -653,6 +664,10 @@ def verify_run(run_dir: Path, frames: int = 1500) -> dict:
         if not (run_dir / name).is_file():
             raise ValueError(f"Invalid option --verify {run_dir}: no {name} (not a run folder "
                              "of recipes/train.py)")
+    least = min_verify_frames(run_dir)
+    if frames < least:
+        raise ValueError(f"Invalid option --verify-frames={frames}: {run_dir} needs at least "
+                         f"{least} (loss.learning_starts + one target sync's gradient steps)")
     with tempfile.TemporaryDirectory(prefix="reproduce_verify_") as tmp:
         cmd = [sys.executable, str(TRAIN), "--config-dir", str(run_dir.resolve()),
                "--config-name", "config", f"collector.total_frames={frames}",
@@ -666,7 +681,7 @@ def verify_run(run_dir: Path, frames: int = 1500) -> dict:
         new = pd.read_csv(Path(tmp) / "run" / "episodes.csv")
     old = pd.read_csv(run_dir / "episodes.csv")
     cols = [c for c in new.columns if c in old.columns]
-    n = min(len(new) - 1, len(old))  # the re-run's last episode was cut by the frame limit
+    n = min(len(new), len(old))
     same = (new[cols].iloc[:n].reset_index(drop=True)
             == old[cols].iloc[:n].reset_index(drop=True)).all(axis=1)
     first = None if same.all() else int(new["episode"].iloc[int((~same).to_numpy().argmax())])
@@ -915,8 +930,9 @@ def main(argv=None) -> dict:
                         "finished runs with this code on this machine and compare their episode "
                         "rows with the records (one JSON line per run)")
     p.add_argument("--verify-frames", type=int, default=1500,
-                   help="frames each --verify re-run trains (more than the run's "
-                        "loss.learning_starts; default 1500)")
+                   help="frames each --verify re-run trains (at least the run's "
+                        "loss.learning_starts + one target sync's gradient steps; "
+                        "default 1500)")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
     args = p.parse_args(argv)
     if args.verify:
@@ -928,6 +944,10 @@ def main(argv=None) -> dict:
                 if not (run / name).is_file():
                     raise ValueError(f"Invalid option --verify {run}: no {name} (not a run "
                                      "folder of recipes/train.py)")
+            if args.verify_frames < min_verify_frames(run):
+                raise ValueError(f"Invalid option --verify-frames={args.verify_frames}: {run} "
+                                 f"needs at least {min_verify_frames(run)} "
+                                 "(loss.learning_starts + one target sync's gradient steps)")
         checks = []
         for run in args.verify:
             checks.append(verify_run(run, args.verify_frames))

@@ -198,15 +198,19 @@ def test_resume_continues_exactly(tmp_path):
     k = json.loads((full / "summary.json").read_text())["k"]
     ordering_k = (root / "tables" / "ordering_k.md").read_text()
     assert "#### thesis" in ordering_k and f"| 1 | CBN-DQN V2 k={k} | 2 |" in ordering_k
-    # --verify: the first 200 frames re-trained here match the record row for row; a
+    # --verify: the first three episodes re-trained here match the record row for row; a
     # record altered in its second episode is caught there (one re-run checks both)
     altered = tmp_path / "altered"
     shutil.copytree(full, altered)
     eps = pd.read_csv(altered / "episodes.csv")
     eps.loc[1, "reward"] += 1.0
     eps.to_csv(altered / "episodes.csv", index=False)
-    check = reproduce.verify_run(altered, frames=200)
-    assert check["episodes_compared"] >= 2
+    least = reproduce.min_verify_frames(altered)  # 48 + 10 / 0.125 + 1 in this config
+    assert least == 129
+    with pytest.raises(ValueError, match="--verify-frames=100"):
+        reproduce.verify_run(altered, frames=100)
+    check = reproduce.verify_run(altered, frames=max(int(eps.loc[2, "frames"]), least))
+    assert check["episodes_compared"] >= 3
     assert check["identical"] == check["episodes_compared"] - 1
     assert check["first_difference"] == int(eps.loc[1, "episode"])
     with pytest.raises(ValueError, match="--verify"):
