@@ -136,7 +136,7 @@ demo: venv
 	    --out outputs/demo/generalist --overwrite
 
 test: venv
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist worksteal --durations=15 --doctest-modules torchrl_causal tests
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --durations=15 --doctest-modules torchrl_causal tests
 
 docs: venv
 	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
