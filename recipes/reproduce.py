@@ -638,7 +638,7 @@ def min_verify_frames(run_dir: Path) -> int:
 
     loss = OmegaConf.load(Path(run_dir) / "config.yaml").loss
     return int(loss.learning_starts) + math.ceil(int(loss.target_update_interval)
-                                                 / float(loss.updates_per_frame)) + 1
+                                                 / float(loss.updates_per_frame))
 
 
 def verify_run(run_dir: Path, frames: int = 1500) -> dict:

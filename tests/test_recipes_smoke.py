@@ -205,8 +205,8 @@ def test_resume_continues_exactly(tmp_path):
     eps = pd.read_csv(altered / "episodes.csv")
     eps.loc[1, "reward"] += 1.0
     eps.to_csv(altered / "episodes.csv", index=False)
-    least = reproduce.min_verify_frames(altered)  # 48 + 10 / 0.125 + 1 in this config
-    assert least == 129
+    least = reproduce.min_verify_frames(altered)  # 48 + 10 / 0.125 in this config
+    assert least == 128
     with pytest.raises(ValueError, match="--verify-frames=100"):
         reproduce.verify_run(altered, frames=100)
     check = reproduce.verify_run(altered, frames=max(int(eps.loc[2, "frames"]), least))
