@@ -641,6 +641,19 @@ def min_verify_frames(run_dir: Path) -> int:
                                                  / float(loss.updates_per_frame))
 
 
+def check_verify_run(run_dir: Path, frames: int) -> None:
+    """Raises ``ValueError`` naming ``run_dir`` when it is not a run folder, or ``frames``
+    when it is below :func:`min_verify_frames` (before any re-run starts)."""
+    for name in ("config.yaml", "episodes.csv"):
+        if not (Path(run_dir) / name).is_file():
+            raise ValueError(f"Invalid option --verify {run_dir}: no {name} (not a run folder "
+                             "of recipes/train.py)")
+    least = min_verify_frames(run_dir)
+    if frames < least:
+        raise ValueError(f"Invalid option --verify-frames={frames}: {run_dir} needs at least "
+                         f"{least} (loss.learning_starts + one target sync's gradient steps)")
+
+
 def verify_run(run_dir: Path, frames: int = 1500) -> dict:
     """Re-trains the first ``frames`` frames of a finished run with this checkout's code on
     this machine (its own ``config.yaml``, in a temporary folder) and compares the episode
@@ -660,14 +673,7 @@ def verify_run(run_dir: Path, frames: int = 1500) -> dict:
         RuntimeError: with the re-run's error output when it fails.
     """
     run_dir = Path(run_dir)
-    for name in ("config.yaml", "episodes.csv"):
-        if not (run_dir / name).is_file():
-            raise ValueError(f"Invalid option --verify {run_dir}: no {name} (not a run folder "
-                             "of recipes/train.py)")
-    least = min_verify_frames(run_dir)
-    if frames < least:
-        raise ValueError(f"Invalid option --verify-frames={frames}: {run_dir} needs at least "
-                         f"{least} (loss.learning_starts + one target sync's gradient steps)")
+    check_verify_run(run_dir, frames)
     with tempfile.TemporaryDirectory(prefix="reproduce_verify_") as tmp:
         cmd = [sys.executable, str(TRAIN), "--config-dir", str(run_dir.resolve()),
                "--config-name", "config", f"collector.total_frames={frames}",
@@ -936,18 +942,8 @@ def main(argv=None) -> dict:
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
     args = p.parse_args(argv)
     if args.verify:
-        if args.verify_frames < 1:
-            raise ValueError(f"Invalid option --verify-frames={args.verify_frames}: expected "
-                             "an integer >= 1")
         for run in args.verify:  # every folder before the first re-run
-            for name in ("config.yaml", "episodes.csv"):
-                if not (run / name).is_file():
-                    raise ValueError(f"Invalid option --verify {run}: no {name} (not a run "
-                                     "folder of recipes/train.py)")
-            if args.verify_frames < min_verify_frames(run):
-                raise ValueError(f"Invalid option --verify-frames={args.verify_frames}: {run} "
-                                 f"needs at least {min_verify_frames(run)} "
-                                 "(loss.learning_starts + one target sync's gradient steps)")
+            check_verify_run(run, args.verify_frames)
         checks = []
         for run in args.verify:
             checks.append(verify_run(run, args.verify_frames))
