@@ -34,6 +34,8 @@ TINY = [
     "progress=false",
     "threads=1",
     "++causal.options.min_rows=10",
+    # the final videos take seconds a run; dqn_image's end-to-end run records them
+    "outputs.videos=0",
 ]
 
 
@@ -50,7 +52,10 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     out = tmp_path / variant
     # evaluation at intervals is exercised by one variant (the code is shared)
     every = ["eval.interval_frames=120"] if variant == "cbn_v2" else []
-    r = _run(["--config-name", variant, f"output_dir={out}", *TINY, *every])
+    # the default recipe's videos (one thesis-scene and outputs.videos held-out episodes)
+    # are recorded by one variant (the code is shared)
+    videos = ["outputs.videos=1"] if variant == "dqn_image" else []
+    r = _run(["--config-name", variant, f"output_dir={out}", *TINY, *every, *videos])
     assert f"Plots: {out / 'plots'}" in r.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["variant"] == variant and summary["frames"] == 240
@@ -76,7 +81,16 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     assert dense.shape[1] == 64 * 7 * 7 + n_features  # Fig. 5.1 vs Fig. 5.2
     if variant == "dqn_image":
         assert "gate_frac_consulted" not in eps and not list((out / "cbns").iterdir())
+        import av
+
+        for scene in ("thesis", "heldout"):
+            assert summary["videos"][scene]["episodes"] == 1
+            with av.open(str(out / "videos" / f"{scene}.mp4")) as video:
+                stream = video.streams.video[0]
+                assert stream.codec_context.name == "h264"
+                assert sum(1 for _ in video.decode(stream)) >= 2
         return
+    assert not (out / "videos").exists()
     rel = pd.read_csv(out / "relearns.csv")
     assert len(rel) >= 2 and summary["n_relearns"] == len(rel)
     assert eps["gate_frac_consulted"].between(0, 1).all()

@@ -28,6 +28,7 @@ TINY = [
     "buffer.batch_size=8", "exploration.annealing_frames=100", "eval.interval_frames=0",
     "eval.episodes=1", "eval.final_episodes=1", "env.eval_layouts=[thesis]",
     "checkpoint.interval_frames=0", "progress=false", "threads=1", "outputs.draw_cbns=false",
+    "outputs.videos=0",
 ]
 FIGURES = ["fig5_3_k_sweep.png", "fig5_4_variants.png", "success_k_sweep.png",
            "success_variants.png"]
