@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, OneHot
 from torchrl.modules import QValueActor
@@ -43,17 +44,23 @@ def _batches(n: int, seed: int = 0, one_hot: bool = False, mask: bool = False):
     return out
 
 
-def _actor(one_hot=False, mask=False, seed=0):
+def _actor(one_hot=False, mask=False, seed=0, split=False):
+    """A ``QValueActor``: one ``TensorDictModule`` around the network (the layout the
+    loss calls on tensors), or with ``split`` the network as two ``TensorDictModule``s in
+    a ``TensorDictSequential`` (the loss then runs it on tensordicts)."""
     torch.manual_seed(seed)
     net = nn.Sequential(nn.Linear(N_OBS, 64), nn.ReLU(), nn.Linear(64, N_ACT))
+    if split:
+        net = TensorDictSequential(TensorDictModule(net[:2], ["obs"], ["hidden"]),
+                                   TensorDictModule(net[2], ["hidden"], ["action_value"]))
     spec = OneHot(N_ACT) if one_hot else Categorical(N_ACT)
     return QValueActor(net, in_keys=["obs"], spec=spec,
                        action_mask_key="action_mask" if mask else None), spec
 
 
 def _train(cls, *, double=False, one_hot=False, mask=False, updater="hard", steps=150,
-           estimator=None):
-    actor, spec = _actor(one_hot, mask)
+           estimator=None, split=False):
+    actor, spec = _actor(one_hot, mask, split=split)
     loss = cls(actor, loss_function="smooth_l1", delay_value=True, double_dqn=double,
                action_space=spec)
     if estimator is None:
@@ -76,14 +83,18 @@ def _train(cls, *, double=False, one_hot=False, mask=False, updater="hard", step
     return loss, torch.stack(losses), torch.stack(errors)
 
 
-@pytest.mark.parametrize("double,one_hot,mask,updater", [
-    (False, False, False, "hard"), (True, False, False, "hard"), (False, True, False, "soft"),
-    (True, False, True, "soft"), (False, False, True, "hard")])
-def test_training_is_bit_for_bit_dqnloss(double, one_hot, mask, updater):
+@pytest.mark.parametrize("double,one_hot,mask,updater,split", [
+    (False, False, False, "hard", False), (True, False, False, "hard", False),
+    (False, True, False, "soft", False), (True, False, True, "soft", False),
+    (False, False, True, "hard", False), (True, True, True, "hard", False),
+    # a value network the loss runs on tensordicts, not on tensors
+    (False, False, False, "hard", True), (True, True, True, "soft", True)])
+def test_training_is_bit_for_bit_dqnloss(double, one_hot, mask, updater, split):
     ref, ref_losses, ref_err = _train(DQNLoss, double=double, one_hot=one_hot, mask=mask,
-                                      updater=updater)
+                                      updater=updater, split=split)
     new, losses, err = _train(StatefulDQNLoss, double=double, one_hot=one_hot, mask=mask,
-                              updater=updater)
+                              updater=updater, split=split)
+    assert (new._plain_parts() is None) == split  # which of the two paths ran
     assert torch.equal(ref_losses, losses) and torch.equal(ref_err, err)
     sa, sb = ref.state_dict(), new.state_dict()
     assert list(sa) == list(sb)  # the same checkpoint layout

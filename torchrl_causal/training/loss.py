@@ -14,6 +14,13 @@ Each update gives bit-for-bit the loss and gradients of ``DQNLoss``
 (``tests/test_stateful_loss.py``); settings it does not cover (an estimator other
 than TD(0), averaged rewards, multi-step gammas, prioritized weights) fall back
 to ``DQNLoss.forward``.
+
+When the value network is the usual ``QValueActor`` -- one ``TensorDictModule``
+around a plain network, then a ``QValueModule`` -- the loss reads the input
+tensors and calls that network directly, with the ``QValueModule``'s own action
+and action-value functions, instead of writing every output into shallow copies
+of the batch: the same operations on the same tensors, without the tensordict
+work around them.
 """
 
 from __future__ import annotations
@@ -22,6 +29,8 @@ import copy
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
@@ -97,10 +106,74 @@ class StatefulDQNLoss(DQNLoss):
             return False
         return not torch.compiler.is_compiling()
 
+    def _plain_parts(self):
+        """``(network module, QValueModule)`` of a value network that is one
+        ``TensorDictModule`` around a plain network followed by a ``QValueModule``
+        (``QValueActor``'s layout), else ``None``."""
+        net = self.value_network
+        mods = getattr(net, "module", None)
+        if not isinstance(mods, torch.nn.ModuleList) or len(mods) != 2:
+            return None
+        tdm, qmod = mods
+        if (type(tdm) is not TensorDictModule or type(qmod) is not QValueModule
+                or list(tdm.out_keys) != [qmod.action_value_key]
+                or qmod.action_space not in ("categorical", "one_hot")
+                or qmod.out_keys[0] != self.tensor_keys.action
+                or qmod.out_keys[-1] != self.value_estimator.tensor_keys.value
+                or isinstance(tdm.module, TensorDictModule)):
+            return None
+        return tdm, qmod
+
+    def _q_values(self, tdm, qmod, module, td, prefix=()):
+        """The network's action values on ``td``'s inputs (under ``prefix``), masked as
+        ``QValueModule`` masks them."""
+        def key(k):
+            return (*prefix, *((k,) if isinstance(k, str) else k))
+        q = module(*(td.get(key(k)) for k in tdm.in_keys))
+        if qmod.action_mask_key is not None:
+            q = torch.where(td.get(key(qmod.action_mask_key)), q, torch.finfo(q.dtype).min)
+        return q
+
+    def _forward_plain(self, tensordict, tdm, qmod) -> TensorDict:
+        """The loss with the network called on tensors (see the module docstring)."""
+        keys, est = self.tensor_keys, self.value_estimator
+        categorical = self.action_space == "categorical"
+        action_func = qmod.action_func_mapping[qmod.action_space]
+        value_func = qmod.action_value_func_mapping.get(qmod.action_space,
+                                                        qmod._default_action_value)
+        pred_val = self._q_values(tdm, qmod, tdm.module, tensordict)
+        action = tensordict.get(keys.action)
+        if categorical:
+            if action.ndim != pred_val.ndim:
+                action = action.unsqueeze(-1)
+            pred_val_index = torch.gather(pred_val, -1, index=action).squeeze(-1)
+        else:
+            pred_val_index = (pred_val * action.to(torch.float)).sum(-1)
+
+        target_mod = self._target().module[0].module
+        if self.double_dqn:
+            with torch.no_grad():
+                next_action = action_func(self._q_values(tdm, qmod, tdm.module, tensordict,
+                                                         ("next",)))
+            next_pred_val = self._q_values(tdm, qmod, target_mod, tensordict, ("next",))
+            if categorical:
+                if next_action.ndim != next_pred_val.ndim:
+                    next_action = next_action.unsqueeze(-1)
+                next_value = torch.gather(next_pred_val, -1, index=next_action)
+            else:
+                next_value = (next_pred_val * next_action).sum(-1, keepdim=True)
+        else:
+            q_next = self._q_values(tdm, qmod, target_mod, tensordict, ("next",))
+            next_value = value_func(q_next, action_func(q_next))
+        return self._td_loss(tensordict, pred_val_index, next_value)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         """DQNLoss's loss on a sampled batch (it writes the same ``td_error``)."""
         if not self._stateful_ok(tensordict):
             return super().forward(tensordict)
+        parts = self._plain_parts()
+        if parts is not None:
+            return self._forward_plain(tensordict, *parts)
         keys, est = self.tensor_keys, self.value_estimator
         td_copy = tensordict.clone(False)
         self.value_network(td_copy)  # holds the value parameters already
@@ -135,11 +208,16 @@ class StatefulDQNLoss(DQNLoss):
             target_net(step_td)
             next_value = step_td.get(est.tensor_keys.value)
 
-        reward = td_copy.get(("next", est.tensor_keys.reward))
+        return self._td_loss(tensordict, pred_val_index, next_value)
+
+    def _td_loss(self, tensordict, pred_val_index, next_value) -> TensorDict:
+        """The TD(0) target, ``td_error`` (written into ``tensordict``) and the loss."""
+        keys, est = self.tensor_keys, self.value_estimator
+        reward = tensordict.get(("next", est.tensor_keys.reward))
         if est.gamma.device != reward.device:
             est.gamma = est.gamma.to(reward.device)
-        done = td_copy.get(("next", est.tensor_keys.done))
-        terminated = td_copy.get(("next", est.tensor_keys.terminated), default=done)
+        done = tensordict.get(("next", est.tensor_keys.done))
+        terminated = tensordict.get(("next", est.tensor_keys.terminated), default=done)
         target_value = td0_return_estimate(gamma=est.gamma, next_state_value=next_value,
                                            reward=reward, terminated=terminated).squeeze(-1)
 
