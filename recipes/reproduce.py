@@ -543,6 +543,81 @@ def _finished_runs(folder: Path) -> list[dict]:
 RECORD_FILES = ("config.yaml", "summary.json", "episodes.csv", "eval.csv", "relearns.csv")
 
 
+def grid_status(plan: list[Run], root: Path, now: float | None = None) -> list[dict]:
+    """Where each run of ``plan`` stands, read from its folder (nothing is trained or
+    loaded): ``finished`` (``summary.json``), ``started`` (a ``config.yaml``: running, or
+    stopped and resumable from its last checkpoint) or ``not started``; its episodes and
+    frames so far, the episode budget of its ``config.yaml``, whether a checkpoint exists,
+    the seconds since its episode rows were last written, and its latest greedy success
+    on the thesis scene (the final evaluation when finished, else the last periodic one)."""
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    now = time.time() if now is None else now
+    rows = []
+    for r in plan:
+        d = r.run_dir
+        row = {"run": str(d.relative_to(root)), "state": "not started", "episodes": 0,
+               "frames": 0, "target_episodes": None, "checkpoint": False,
+               "updated_s_ago": None, "thesis_success": None}
+        if (d / "config.yaml").is_file():
+            row["state"] = "started"
+            cfg = OmegaConf.load(d / "config.yaml")
+            row["target_episodes"] = OmegaConf.select(cfg, "collector.total_episodes")
+        row["checkpoint"] = (d / "checkpoints" / "last.pt").is_file()
+        eps_file = d / "episodes.csv"
+        if eps_file.is_file():
+            eps = pd.read_csv(eps_file)
+            row["episodes"] = len(eps)
+            row["frames"] = int(eps["frames"].iloc[-1]) if len(eps) else 0
+            row["updated_s_ago"] = round(now - eps_file.stat().st_mtime)
+        if (d / "summary.json").is_file():
+            summary = json.loads((d / "summary.json").read_text())
+            row.update(state="finished", frames=int(summary["frames"]),
+                       episodes=int(summary["episodes"]))
+            final = summary.get("final_eval", {}).get("thesis")
+            row["thesis_success"] = None if final is None else final["success_rate"]
+        elif (d / "eval.csv").is_file():
+            ev = pd.read_csv(d / "eval.csv")
+            ev = ev[ev["layout"] == "thesis"] if "layout" in ev else ev
+            if len(ev):
+                row["thesis_success"] = float(ev["success_rate"].iloc[-1])
+        rows.append(row)
+    return rows
+
+
+def format_status(rows: list[dict]) -> str:
+    """``grid_status``'s rows as a table, then the totals and the episodes left."""
+    def cell(v, fmt="{}"):
+        return "-" if v is None else fmt.format(v)
+    lines = ["| run | state | episodes | frames | checkpoint | updated | thesis success |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        eps = f"{r['episodes']} / {r['target_episodes']}" if r["target_episodes"] else \
+            str(r["episodes"])
+        updated = "-" if r["updated_s_ago"] is None else format_duration(r["updated_s_ago"]) + \
+            " ago"
+        lines.append(f"| {r['run']} | {r['state']} | {eps} | {r['frames']:,} | "
+                     f"{'yes' if r['checkpoint'] else 'no'} | {updated} | "
+                     f"{cell(r['thesis_success'], '{:.2f}')} |")
+    count = {s: sum(r["state"] == s for r in rows) for s in ("finished", "started",
+                                                              "not started")}
+    frames = sum(r["frames"] for r in rows)
+    lines.append("")
+    lines.append(f"{len(rows)} runs: {count['finished']} finished, {count['started']} started, "
+                 f"{count['not started']} not started; {frames:,} frames so far.")
+    budgets = [r["target_episodes"] for r in rows if r["target_episodes"]]
+    episodes = sum(r["episodes"] for r in rows)
+    if budgets and episodes:
+        # every run of a grid shares its budget: the unstarted runs have the same
+        budget = max(budgets)
+        left = sum(max(budget - r["episodes"], 0) for r in rows if r["state"] != "finished")
+        per_episode = frames / episodes
+        lines.append(f"Episodes left: {left:,} (about {left * per_episode:,.0f} frames at this "
+                     f"grid's {per_episode:.0f} frames per episode so far).")
+    return "\n".join(lines)
+
+
 def export_records(root: Path, dest: Path) -> list[Path]:
     """Copies the records of every finished run under ``root`` to ``dest`` (same layout):
     a few hundred kB per run, enough for ``--aggregate-only --root dest`` to draw the same
@@ -939,6 +1014,10 @@ def main(argv=None) -> dict:
                    help="frames each --verify re-run trains (at least the run's "
                         "loss.learning_starts + one target sync's gradient steps; "
                         "default 1500)")
+    p.add_argument("--status", action="store_true",
+                   help="train nothing: print where each run of the selected grid stands "
+                        "under --root (finished / started / not started, episodes, frames, "
+                        "checkpoint, latest thesis-scene success) and the episodes left")
     p.add_argument("overrides", nargs="*", help="extra hydra overrides for every run (after --)")
     args = p.parse_args(argv)
     if args.verify:
@@ -950,7 +1029,7 @@ def main(argv=None) -> dict:
             print(json.dumps(checks[-1]), flush=True)
         return {"verify": checks}
     launcher = args.launcher
-    if not args.aggregate_only:
+    if not (args.aggregate_only or args.status):
         check_launcher(launcher)  # unknown name or missing plugin: before any work
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"Invalid option --jobs={args.jobs}: expected an integer >= 1")
@@ -975,6 +1054,11 @@ def main(argv=None) -> dict:
     if bad_k:
         raise ValueError(f"Invalid option --k={bad_k}: expected integers > 0")
     root = (args.root or Path("outputs") / f"reproduce_{args.mode}").resolve()
+    if args.status:
+        rows = grid_status(run_plan(root, args.mode, seeds, args.variants, args.k,
+                                    args.groups), root)
+        print(format_status(rows), flush=True)
+        return {"status": rows}
     ru.check_writable(root)
     # a second '--' (a wrapper that adds its own overrides after the caller's, as
     # benchmarks/gpu_box.sh does) reaches here as an override: it separates, nothing more

@@ -150,6 +150,25 @@ def test_resume_continues_exactly(tmp_path):
     assert 0 < len(stopped) < len(pd.read_csv(full / "episodes.csv"))
     assert not (cut / "summary.json").exists()
     assert (cut / "checkpoints" / "buffer_storage").is_dir()  # the memmap a resume reuses
+    # reproduce.py --status over a grid holding a finished run, a stopped one and two never
+    # started: read from the folders, nothing trained
+    import shutil
+
+    sys.path.insert(0, str(ROOT / "recipes"))
+    import reproduce
+
+    grid = tmp_path / "status"
+    shutil.copytree(full, grid / "variants" / "cbn_v2" / "seed_0")
+    shutil.copytree(cut, grid / "variants" / "cbn_v2" / "seed_1")
+    rows = reproduce.main(["--status", "--root", str(grid), "--groups", "variants",
+                           "--variants", "cbn_v2", "dqn_image", "--seeds", "2"])["status"]
+    assert [(r["run"], r["state"]) for r in rows] == [
+        ("variants/cbn_v2/seed_0", "finished"), ("variants/cbn_v2/seed_1", "started"),
+        ("variants/dqn_image/seed_0", "not started"), ("variants/dqn_image/seed_1", "not started")]
+    assert rows[1]["episodes"] == len(stopped) and rows[1]["checkpoint"]
+    assert rows[1]["frames"] == int(stopped["frames"].iloc[-1]) < rows[0]["frames"] == 280
+    assert rows[0]["thesis_success"] is not None and rows[2]["episodes"] == 0
+    assert not (grid / "figures").exists()  # --status draws and trains nothing
     _run([*args, f"output_dir={cut}", "checkpoint.resume=true"])
 
     for name in ("episodes.csv", "relearns.csv", "eval.csv"):
@@ -181,11 +200,6 @@ def test_resume_continues_exactly(tmp_path):
     assert (full / "episodes.csv").read_text() == episodes_before
 
     # reproduce.py's aggregation over real run folders (two seeds of one variant)
-    import shutil
-
-    sys.path.insert(0, str(ROOT / "recipes"))
-    import reproduce
-
     root = tmp_path / "repro"
     shutil.copytree(full, root / "variants" / "cbn_v2" / "seed_0")
     shutil.copytree(cut, root / "variants" / "cbn_v2" / "seed_1")
