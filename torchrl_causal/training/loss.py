@@ -39,6 +39,20 @@ from torchrl.objectives.value.functional import td0_return_estimate
 __all__ = ["StatefulDQNLoss"]
 
 
+def _taken(values, action, categorical: bool, keepdim: bool = False):
+    """``values`` at ``action`` (an index, or one-hot), as ``DQNLoss`` reads them: the
+    predicted value of the action taken, or the target's value of the chosen next action
+    (``keepdim``)."""
+    if categorical:
+        if action.ndim != values.ndim:
+            action = action.unsqueeze(-1)
+        out = torch.gather(values, -1, index=action)
+        return out if keepdim else out.squeeze(-1)
+    if keepdim:
+        return (values * action).sum(-1, keepdim=True)
+    return (values * action.to(torch.float)).sum(-1)
+
+
 class StatefulDQNLoss(DQNLoss):
     """:class:`~torchrl.objectives.DQNLoss` computed without swapping parameters per call.
 
@@ -143,12 +157,7 @@ class StatefulDQNLoss(DQNLoss):
                                                         qmod._default_action_value)
         pred_val = self._q_values(tdm, qmod, tdm.module, tensordict)
         action = tensordict.get(keys.action)
-        if categorical:
-            if action.ndim != pred_val.ndim:
-                action = action.unsqueeze(-1)
-            pred_val_index = torch.gather(pred_val, -1, index=action).squeeze(-1)
-        else:
-            pred_val_index = (pred_val * action.to(torch.float)).sum(-1)
+        pred_val_index = _taken(pred_val, action, categorical)
 
         target_mod = self._target().module[0].module
         if self.double_dqn:
@@ -156,12 +165,7 @@ class StatefulDQNLoss(DQNLoss):
                 next_action = action_func(self._q_values(tdm, qmod, tdm.module, tensordict,
                                                          ("next",)))
             next_pred_val = self._q_values(tdm, qmod, target_mod, tensordict, ("next",))
-            if categorical:
-                if next_action.ndim != next_pred_val.ndim:
-                    next_action = next_action.unsqueeze(-1)
-                next_value = torch.gather(next_pred_val, -1, index=next_action)
-            else:
-                next_value = (next_pred_val * next_action).sum(-1, keepdim=True)
+            next_value = _taken(next_pred_val, next_action, categorical, keepdim=True)
         else:
             q_next = self._q_values(tdm, qmod, target_mod, tensordict, ("next",))
             next_value = value_func(q_next, action_func(q_next))
@@ -180,12 +184,7 @@ class StatefulDQNLoss(DQNLoss):
         action = tensordict.get(keys.action)
         pred_val = td_copy.get(keys.action_value)
         categorical = self.action_space == "categorical"
-        if categorical:
-            if action.ndim != pred_val.ndim:
-                action = action.unsqueeze(-1)
-            pred_val_index = torch.gather(pred_val, -1, index=action).squeeze(-1)
-        else:
-            pred_val_index = (pred_val * action.to(torch.float)).sum(-1)
+        pred_val_index = _taken(pred_val, action, categorical)
 
         # the next observations (DQNLoss: step_mdp(keep_other=False); the Q-network reads the
         # same entries, and its outputs land in this shallow copy only)
@@ -198,12 +197,7 @@ class StatefulDQNLoss(DQNLoss):
             next_action = step_td.get(keys.action)
             target_net(step_td_copy)
             next_pred_val = step_td_copy.get(keys.action_value)
-            if categorical:
-                if next_action.ndim != next_pred_val.ndim:
-                    next_action = next_action.unsqueeze(-1)
-                next_value = torch.gather(next_pred_val, -1, index=next_action)
-            else:
-                next_value = (next_pred_val * next_action).sum(-1, keepdim=True)
+            next_value = _taken(next_pred_val, next_action, categorical, keepdim=True)
         else:
             target_net(step_td)
             next_value = step_td.get(est.tensor_keys.value)
