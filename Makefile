@@ -11,7 +11,7 @@ export YOLO_OFFLINE ?= 1
 export YOLO_CONFIG_DIR ?= $(CURDIR)/.yolo_config
 PYTEST_WORKERS ?= 2
 
-.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights detector-weights arrival-weights protocol clean
+.PHONY: venv train test docs bench bench-learning bench-gridnav generalist ship-thesis demo depth-weights detector-weights arrival-weights protocol protocol-status clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -58,6 +58,13 @@ protocol: venv
 	    -- threads=1 progress=false
 	$(PY) $(PROTOCOL_RUN) --seeds 2 --root outputs/reproduce_thesis --groups variants \
 	    --variants dqn_image cbn_defined cbn_p cbn_pn cbn_v2 -- preset=thesis threads=1 progress=false
+
+# make protocol-status: where each run of `make protocol` stands (reproduce.py --status);
+# trains nothing
+protocol-status: venv
+	$(PY) recipes/reproduce.py --mode full --seeds 5 --root outputs/reproduce --status
+	$(PY) recipes/reproduce.py --mode full --seeds 2 --root outputs/reproduce_thesis \
+	    --groups variants --variants dqn_image cbn_defined cbn_p cbn_pn cbn_v2 --status
 
 # make ship-thesis THESIS_RUN=<run folder of make train>: ship it as pretrained "thesis"
 THESIS_RUN ?= outputs/make_train
