@@ -150,13 +150,12 @@ class StatefulDQNLoss(DQNLoss):
 
     def _forward_plain(self, tensordict, tdm, qmod) -> TensorDict:
         """The loss with the network called on tensors (see the module docstring)."""
-        keys, est = self.tensor_keys, self.value_estimator
         categorical = self.action_space == "categorical"
         action_func = qmod.action_func_mapping[qmod.action_space]
         value_func = qmod.action_value_func_mapping.get(qmod.action_space,
                                                         qmod._default_action_value)
         pred_val = self._q_values(tdm, qmod, tdm.module, tensordict)
-        action = tensordict.get(keys.action)
+        action = tensordict.get(self.tensor_keys.action)
         pred_val_index = _taken(pred_val, action, categorical)
 
         target_mod = self._target().module[0].module
