@@ -57,7 +57,7 @@ from torchrl_causal.envs.control import TELLO_MOVE_NOISE as NOISE  # noqa: E402
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
                "success_sim", "closest_sim_m", "land_offset_sim_m", "battery",
-               "goal_distance_m", "goal_angle_deg"]
+               "goal_distance_m", "goal_angle_deg", "approaches"]
 
 
 def parse_args(argv=None):
@@ -144,6 +144,11 @@ def parse_args(argv=None):
     p.add_argument("--arrival-fusion", action="store_true",
                    help="with the arrival head: average its estimates over the steps that did "
                         "not move the drone across the floor (turns, climbs)")
+    p.add_argument("--final-approach", type=float, default=None, metavar="RADIUS",
+                   help="with the arrival head: when it puts the goal point within RADIUS m "
+                        "(e.g. 0.4) and the rule has not fired, fly the last leg to its "
+                        "estimate with one SDK 'go' (docs/tello.rst, 'A final approach'); "
+                        "default: off")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -217,6 +222,14 @@ def parse_args(argv=None):
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
                 "(--arrival-head shipped or a weights file; 'auto' chose none here)")
+    if a.final_approach is not None:
+        if a.arrival_head is None:
+            p.error(f"--final-approach {a.final_approach:g} flies to the arrival head's "
+                    "estimate of the goal point: it needs the head (--arrival-head shipped or "
+                    "a weights file; 'auto' chose none here)")
+        if not 0.05 <= a.final_approach <= 1.0:
+            p.error(f"--final-approach must be a radius in [0.05, 1.0] m, got "
+                    f"{a.final_approach:g}")
     if a.reach_full_width == "auto":  # where it was measured to help (docs/tello.rst)
         a.reach_full_width = "on" if full_width_applies(a) else "off"
     if a.no_height_check:
@@ -349,6 +362,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
 
         kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
+        kw["final_approach"] = getattr(args, "final_approach", None)
     if layout is not None:  # the emulated scene's flight volume, in the take-off frame
         x0, y0, _ = layout.start_pos
         xa, ya, xb, yb = layout.arena
@@ -377,7 +391,7 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for ep in range(1, args.episodes + 1):
             td = tenv.reset()
-            total, length = 0.0, 0
+            total, length, approaches0 = 0.0, 0, base.approaches
             if writer is not None and base.last_frame is not None:
                 writer.write(base.last_frame)
             while True:
@@ -405,7 +419,9 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
                    # the last step's measured range and bearing to the goal box (0 when not
                    # in sight): for a "reached" episode, the reading the rule fired on
                    "goal_distance_m": round(float(nxt["goal_distance"]), 3),
-                   "goal_angle_deg": round(float(nxt["goal_angle"]), 1)}
+                   "goal_angle_deg": round(float(nxt["goal_angle"]), 1),
+                   # final approaches (SDK go) flown in the episode (--final-approach)
+                   "approaches": base.approaches - approaches0}
             csv.write(row)
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -483,6 +499,8 @@ def main(argv=None) -> dict:
             summary[opt] = str(getattr(args, opt))
     if getattr(args, "arrival_fusion", False):
         summary["arrival_fusion"] = True
+    if getattr(args, "final_approach", None) is not None:
+        summary["final_approach"] = args.final_approach
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

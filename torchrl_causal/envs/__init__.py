@@ -42,6 +42,7 @@ _LAZY = {
     "helipad_image": "scene",
     "board_face_image": "scene",
     "ReachRule": "reach",
+    "FinalApproach": "reach",
     "KinematicExecutor": "control",
     "TELLO_MOVE_NOISE": "control",
     "PhysicsExecutor": "control",

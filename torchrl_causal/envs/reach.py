@@ -50,7 +50,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["ReachRule", "calibrate_reach_distance", "goal_point_offset"]
+__all__ = ["ReachRule", "FinalApproach", "calibrate_reach_distance", "goal_point_offset"]
 
 
 def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.45,
@@ -263,6 +263,124 @@ class ReachRule:
     def to_dict(self) -> dict:
         """The rule's options (for ``summary.json``)."""
         return asdict(self)
+
+
+class FinalApproach:
+    """The last leg flown by the drone itself: from the arrival head's estimate to the goal point.
+
+    Near the goal a policy that turns back and forth at the sphere's edge (0.2-0.4 m
+    from the goal point, where the head's few centimetres of error decide the verdict)
+    neither arrives nor crashes until it does (docs/tello.rst, "A final approach").
+    When the head puts the goal point within ``radius`` (and the rule has not fired),
+    :class:`~torchrl_causal.envs.TelloEnv` sends one Tello SDK ``go x y z speed`` to
+    the estimated goal point and observes again.
+
+    The head reads ``(ahead, lateral)`` in the *board's* frame; the move is in the
+    drone's. The angle between the two comes from the episode's own history: each
+    head estimate is stored with the drone's dead-reckoned position (its executed
+    moves, turned by the height sensor's companion, the IMU's yaw), and the rotation
+    that best maps the dead-reckoned displacements onto the head's displacements
+    (2-D Procrustes over every pair at least ``min_baseline`` apart) is the board's
+    heading in the drone's odometry frame. Without such a pair there is no approach.
+
+    The SDK refuses a ``go`` whose three components are all within -20..20 cm: such a
+    move is lengthened along its own line to 21 cm on its largest axis, so it flies
+    through the estimated goal point and a little beyond (the simulator and the
+    arrival rule's segment both count the pass).
+
+    Args:
+        radius: the head's 3-D distance to the goal point (m) within which the drone
+            flies the last leg itself (0.05-1.0).
+        min_baseline: the shortest dead-reckoned displacement (m) between two
+            estimates whose pair is used for the heading.
+        speed: the ``go`` speed (cm/s, the SDK's 10-100).
+
+    Example:
+        >>> import math
+        >>> fa = FinalApproach(radius=0.4)
+        >>> fa.record((0.0, 0.0), (0.8, 0.0))     # the board ahead, square on
+        >>> fa.record((0.5, 0.0), (0.3, 0.0))     # flew 0.5 m forward: 0.5 m nearer
+        >>> fa.plan((0.3, 0.0, 0.0), yaw=0.0)     # 30 cm forward to the goal point
+        (30, 0, 0)
+        >>> fa.plan((0.3, 0.1, 0.0), yaw=math.radians(90))  # 0.1 m to its right, turned left
+        (10, -30, 0)
+        >>> fa.plan((0.1, 0.05, -0.05), yaw=0.0)  # all within 20 cm: lengthened
+        (21, 11, 10)
+        >>> fa.plan((0.6, 0.0, 0.0), yaw=0.0) is None   # beyond the radius
+        True
+    """
+
+    def __init__(self, radius: float = 0.4, *, min_baseline: float = 0.15, speed: int = 30):
+        for name, v, lo, hi in (("radius", radius, 0.05, 1.0),
+                                ("min_baseline", min_baseline, 0.01, 2.0)):
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                    and math.isfinite(v) and lo <= v <= hi):
+                raise ValueError(f"FinalApproach.{name} must be a number in [{lo}, {hi}] m, "
+                                 f"got {v!r}")
+        if not (isinstance(speed, int) and not isinstance(speed, bool) and 10 <= speed <= 100):
+            raise ValueError(f"FinalApproach.speed must be an int in [10, 100] cm/s (the "
+                             f"Tello SDK's go), got {speed!r}")
+        self.radius = float(radius)
+        self.min_baseline = float(min_baseline)
+        self.speed = int(speed)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets the episode's estimates (a new episode)."""
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def record(self, position, estimate) -> None:
+        """Stores one head estimate ``(ahead, lateral)`` (m, the board's frame) with the
+        drone's dead-reckoned ``(x, y)`` (m, the odometry frame) where it was read."""
+        self._history.append((np.asarray(position, float)[:2].copy(),
+                              np.asarray(estimate, float)[:2].copy()))
+
+    def heading(self) -> float | None:
+        """The rotation (rad) from the odometry frame to the board's, or None (no pair of
+        estimates ``min_baseline`` apart)."""
+        cross = dot = 0.0
+        h = self._history
+        for i in range(len(h)):
+            for j in range(i + 1, len(h)):
+                dw, dp = h[j][0] - h[i][0], h[j][1] - h[i][1]
+                if float(np.hypot(*dw)) < self.min_baseline:
+                    continue
+                cross += dw[0] * dp[1] - dw[1] * dp[0]
+                dot += dw @ dp
+        if cross == 0.0 and dot == 0.0:
+            return None
+        return math.atan2(cross, dot)
+
+    def plan(self, estimate, yaw: float, threshold: float = 0.0):
+        """The ``go`` of the last leg, ``(forward, left, up)`` in whole cm, or None.
+
+        Args:
+            estimate: the head's ``(ahead, lateral, dz)`` (m; ``dz``: the drone above
+                the goal point, from the height sensor).
+            yaw: the drone's yaw (rad, counter-clockwise) in the odometry frame.
+            threshold: no approach at or within this distance (the rule's own
+                ``max_goal_offset``: it would have fired).
+        """
+        est = np.asarray(estimate, float).reshape(-1)
+        if est.shape != (3,) or not np.isfinite(est).all():
+            return None
+        dist = float(np.linalg.norm(est))
+        if dist > self.radius or dist <= threshold:
+            return None
+        alpha = self.heading()
+        if alpha is None:
+            return None
+        ca, sa = math.cos(-alpha), math.sin(-alpha)
+        vx, vy = -est[0], -est[1]  # to the goal point, in the board's frame
+        wx, wy = ca * vx - sa * vy, sa * vx + ca * vy  # ... in the odometry frame
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        move = np.array([cy * wx + sy * wy, -sy * wx + cy * wy, -est[2]]) * 100.0
+        big = float(np.abs(move).max())
+        if big < 1e-9:
+            return None
+        if big < 20.5:  # the SDK's go needs one axis beyond 20 cm: fly through the point
+            move *= 21.0 / big
+        return tuple(int(round(float(v))) for v in move)
 
 
 def calibrate_reach_distance(depth_estimator=None, *, poses: int = 200, seed: int = 0,

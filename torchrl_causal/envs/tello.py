@@ -79,7 +79,7 @@ from ..perception.arrival import segment_distance
 from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
 from ..perception.video_path import crop_resize
 from ..schema import ACTION_NAMES
-from .reach import ReachRule
+from .reach import FinalApproach, ReachRule
 from .rewards import StepOutcome, make_reward
 from .specs import navigation_specs
 
@@ -196,6 +196,12 @@ class TelloEnv(EnvBase):
             over consecutive asked steps whose moves did not move the drone across the
             floor (turns, climbs, refused moves): the drone is where it was, so the
             estimates of one place are fused (docs/tello.rst, "Fused over turns").
+        final_approach: with ``arrival_head``, a
+            :class:`~torchrl_causal.envs.reach.FinalApproach` (or its ``radius`` in m):
+            when the head puts the goal point within that radius and the rule has not
+            fired, the env flies the last leg itself (one SDK ``go x y z speed`` to the
+            estimated goal point) within the same step and observes again
+            (docs/tello.rst, "A final approach"); None (default): never.
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
             (x forward, y left at take-off), checked on the dead-reckoned
             position before each move; None: no geofence.
@@ -225,6 +231,7 @@ class TelloEnv(EnvBase):
         sent: every command sent (or printed), in order.
         flying: whether the env believes the drone is in the air.
         last_frame: the last decoded video frame (RGB, full size) observed.
+        approaches: how many final approaches (``go`` commands) this env has flown.
 
     Example:
         >>> import torch
@@ -256,6 +263,7 @@ class TelloEnv(EnvBase):
         reach_rule: ReachRule | None = None,
         arrival_head: Callable | None = None,
         arrival_fusion: bool = False,
+        final_approach: FinalApproach | float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         min_height: float = 0.2,
         max_height: float = 2.5,
@@ -310,6 +318,14 @@ class TelloEnv(EnvBase):
             raise ValueError("arrival_head needs a reach_rule with max_goal_offset (the "
                              "distance to the goal point it estimates is compared with it), "
                              f"got {reach_rule!r}")
+        if isinstance(final_approach, (int, float)) and not isinstance(final_approach, bool):
+            final_approach = FinalApproach(radius=float(final_approach))
+        if final_approach is not None and not isinstance(final_approach, FinalApproach):
+            raise ValueError(f"final_approach must be a FinalApproach, a radius (m) or None, "
+                             f"got {final_approach!r}")
+        if final_approach is not None and arrival_head is None:
+            raise ValueError("final_approach flies to the arrival head's estimate of the goal "
+                             "point: it needs an arrival_head")
         if geofence is not None:
             if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
                     or not all(isinstance(v, (int, float)) for v in geofence)
@@ -352,6 +368,10 @@ class TelloEnv(EnvBase):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
         self.arrival_fusion = arrival_fusion
+        self.final_approach = final_approach
+        self.approaches = 0
+        self._world = np.zeros(2)  # dead reckoning turned by the IMU's yaw (final approach)
+        self._yaw = 0.0  # the IMU's yaw (rad, counter-clockwise) at the last observation
         self._forget_arrival()
         self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
         self.min_height = float(min_height)
@@ -621,6 +641,8 @@ class TelloEnv(EnvBase):
         self._prev_dz = None  # the height sensor's offset from the goal height, last step
         self._prev_sighted = False  # the detector saw the board within range, last step
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
+        if getattr(self, "final_approach", None) is not None:
+            self.final_approach.reset()
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
                      frame=None, distance: float | None = None) -> float | None:
@@ -663,6 +685,8 @@ class TelloEnv(EnvBase):
                 return nearest
             look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
                               float).reshape(-1)[:2]
+            if self.final_approach is not None:
+                self.final_approach.record(self._world, look)
             stayed = prev is not None and not any(self._last_move[:2])  # no move across
             if self.arrival_fusion and stayed and self._fused is not None:
                 total, n = self._fused
@@ -693,6 +717,8 @@ class TelloEnv(EnvBase):
         st = self._state()
         alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
         bat = float(st.get("bat", 0.0)) if st else 0.0
+        # the Tello's yaw is clockwise-positive degrees; without one, the commanded yaw
+        self._yaw = -math.radians(float(st["yaw"])) if st and "yaw" in st else self._odom[3]
         box = meas.box[0].tolist()
         offset = None if crashed else self._goal_offset(in_sight, depth[0], box, alt, frame,
                                                         dist)
@@ -724,6 +750,7 @@ class TelloEnv(EnvBase):
             self._steps = 0
             self._prev_distance = None
             self._last_move = (0.0, 0.0, 0.0)
+            self._world = np.zeros(2)
             self._forget_arrival()
             obs = self._observe(self._current_frame())
         except BaseException as e:
@@ -753,6 +780,41 @@ class TelloEnv(EnvBase):
         return ({"right": s, "left": -s}.get(name, 0.0),
                 {"forward": s, "backward": -s}.get(name, 0.0),
                 {"ascend": s, "descend": -s}.get(name, 0.0))
+
+    def _dead_reckon(self, move) -> None:
+        """Adds a flown move ``(right, forward, up)`` to the final approach's dead
+        reckoning, turned by the IMU's yaw before the move."""
+        c, s = math.cos(self._yaw), math.sin(self._yaw)
+        fwd, left = move[1], -move[0]
+        self._world = self._world + np.array([c * fwd - s * left, s * fwd + c * left])
+
+    def _approach(self, go, obs):
+        """Flies the final approach ``go = (forward, left, up)`` (cm) and observes again;
+        returns ``(obs, crashed)`` (``obs`` unchanged when the geofence refuses it)."""
+        fwd, left, up = (v / 100.0 for v in go)
+        x, y, z, yaw = self._odom
+        c, s = math.cos(yaw), math.sin(yaw)
+        target = (x + c * fwd - s * left, y + s * fwd + c * left, z + up, yaw)
+        if not self._inside(target):
+            LOGGER.warning("Tello: final approach %s refused, it would leave the geofence/height "
+                           "limits", go)
+            return obs, False
+        since = self._current_frame()
+        self._last_move = (0.0, 0.0, 0.0)
+        self.approaches += 1
+        cmd = f"go {go[0]} {go[1]} {go[2]} {self.final_approach.speed}"
+        reply = self._send(cmd, retry_on_timeout=False)
+        crashed = reply is not None and ("motor stop" in reply.lower()
+                                         or "not flying" in reply.lower())
+        if crashed:
+            self.flying = False
+            self.tello.is_flying = False
+            LOGGER.warning("Tello: %r answered %r: crash", cmd, reply)
+        else:
+            self._odom = target
+            self._last_move = (-left, fwd, up)
+            self._dead_reckon(self._last_move)
+        return self._observe(since, crashed=crashed), crashed
 
     def _inside(self, pose) -> bool:
         x, y, z, _ = pose
@@ -790,7 +852,14 @@ class TelloEnv(EnvBase):
                 else:
                     self._odom = target
                     self._last_move = self._move_in_camera_frame(action)
+                    self._dead_reckon(self._last_move)
             obs = self._observe(since, crashed=crashed, out_of_bounds=out_of_bounds)
+            if (self.final_approach is not None and not crashed and not out_of_bounds
+                    and not bool(obs["reached"]) and self._prev_offset is not None):
+                go = self.final_approach.plan(self._prev_offset, self._yaw,
+                                              threshold=self.reach_rule.max_goal_offset)
+                if go is not None:
+                    obs, crashed = self._approach(go, obs)
             st = self._state()
             if not crashed and not self.dry_run and st and st.get("h", 1) == 0:
                 crashed = True  # on the ground without having been told to land

@@ -9,7 +9,9 @@ What it emulates (Tello SDK 2.0/3.0, see :doc:`/tello`):
 
 * **commands** on ``(host, command_port)``: ``command``, ``takeoff``, ``land``,
   ``emergency``, ``streamon``/``streamoff``, ``up/down/left/right/forward/back
-  <20..500 cm>``, ``cw/ccw <1..360 deg>``, ``rc a b c d`` (no reply), ``stop``,
+  <20..500 cm>``, ``cw/ccw <1..360 deg>``, ``go x y z speed`` (x forward, y left,
+  z up, -500..500 cm, not all three within 20 cm; 10..100 cm/s), ``rc a b c d``
+  (no reply), ``stop``,
   ``keepalive``, ``speed <cm/s>``, ``port <state> <video>``, ``setfps``,
   ``setbitrate``, ``setresolution``, the read commands ``battery?``,
   ``speed?``, ``time?``, ``height?``, ``tof?``, ``temp?``, ``attitude?``,
@@ -840,7 +842,8 @@ class TelloEmulator:
             self._event(f"fault: {text!r} answered 'error'")
             self._reply("error", addr, now)
             return
-        motion_cmds = ("takeoff", "up", "down", "left", "right", "forward", "back", "cw", "ccw")
+        motion_cmds = ("takeoff", "up", "down", "left", "right", "forward", "back", "cw", "ccw",
+                       "go")
         if f.no_valid_imu and cmd in motion_cmds:
             self._event(f"fault: {text!r} answered 'error No valid imu'")
             self._reply("error No valid imu", addr, now)
@@ -896,6 +899,27 @@ class TelloEmulator:
             # however the simulation thread's ticks split the motion
             delta = self.env._executor.noisy_delta(delta, self.env._noise_rng)
             self._start_motion(_Motion("move", delta, duration, addr), now)
+            return
+        if cmd == "go":  # go x y z speed: x forward, y left, z up (cm), in the body frame
+            if not self.flying:
+                self._reply("error Not flying", addr, now)
+                return
+            try:
+                x, y, z, v = (int(a) for a in args)
+                if not (all(-500 <= c <= 500 for c in (x, y, z)) and 10 <= v <= 100):
+                    raise ValueError
+            except ValueError:
+                self._reply("error Out of range: go takes x y z in -500..500 (cm) and speed "
+                            "10..100", addr, now)
+                return
+            if all(-20 <= c <= 20 for c in (x, y, z)):  # the SDK's rule
+                self._reply("error Out of range: x, y and z cannot all be within -20..20",
+                            addr, now)
+                return
+            delta = self.env._executor.noisy_delta((x / 100.0, y / 100.0, z / 100.0, 0.0),
+                                                   self.env._noise_rng)
+            self._start_motion(_Motion("move", delta, math.sqrt(x * x + y * y + z * z) / v,
+                                       addr), now)
             return
         if cmd in ("stop", "keepalive"):
             self._rc = (0.0, 0.0, 0.0, 0.0)
