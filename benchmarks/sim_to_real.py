@@ -10,7 +10,8 @@
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
-(``--noise``), the default arrival rule (``--arrival-head auto``) -- and flies
+(``--noise``), the default arrival rule (``--arrival-head auto``, and with the
+head ``--final-approach auto``) -- and flies
 the same policy in :class:`~torchrl_causal.envs.DroneNavEnv` under the same
 noise model (``--compare-sim``). The thesis policy flies the thesis scene, the
 generalist held-out random layouts. Prints one JSON object per figure:
@@ -81,7 +82,7 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
     n = s["success_sim"]["n"]
     return {"figure": "sim_to_real", "policy": policy, "seed": seed, "episodes": n,
             "layout": s.get("layout"), "arrival_head": s.get("arrival_head"),
-            "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
+            "final_approach": s.get("final_approach"), "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
             "agreement": s["agreement"], "false_reached": s["false_reached"],
             "missed_reach": s["missed_reach"], "crashes": s["crashes"],
             "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],

@@ -141,6 +141,9 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--host", "192.168.10.1", "--seed", "3", "--dry-run"], "the option is the emulator's"),
     (["--arrival-head", "missing.pt", "--reach-offset", "0.2"], "'missing.pt': no such file"),
     (["--arrival-head", "none", "--arrival-fusion"], "--arrival-fusion fuses the arrival head"),
+    (["--arrival-head", "none", "--final-approach", "0.4"], "it needs the head"),
+    (["--final-approach", "near"], "--final-approach must be a radius (m), 'auto' or 'none'"),
+    (["--final-approach", "2.5"], "--final-approach must be a radius in [0.05, 1.0] m"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -186,6 +189,13 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
         assert args.arrival_head is None and args.reach_rule.max_goal_offset in (None,), other
     generalist = fly_tello.parse_args([])  # the shipped generalist: random layouts
     assert generalist.arrival_head is None
+    # --final-approach auto: wherever the head flies, and only there
+    assert thesis.final_approach == real.final_approach == fly_tello.FINAL_APPROACH_RADIUS
+    assert generalist.final_approach is None
+    assert fly_tello.parse_args(["--run", str(POLICY), "--final-approach", "none"]
+                                ).final_approach is None
+    assert fly_tello.parse_args(["--run", str(POLICY), "--final-approach", "0.3"]
+                                ).final_approach == 0.3
 
 
 def test_the_full_width_check_is_the_default_on_random_layouts():
