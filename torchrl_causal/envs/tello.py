@@ -799,11 +799,11 @@ class TelloEnv(EnvBase):
             LOGGER.warning("Tello: final approach %s refused, it would leave the geofence/height "
                            "limits", go)
             return obs, False
-        since = self._current_frame()
         self._last_move = (0.0, 0.0, 0.0)
         self.approaches += 1
         cmd = f"go {go[0]} {go[1]} {go[2]} {self.final_approach.speed}"
         reply = self._send(cmd, retry_on_timeout=False)
+        since = self._current_frame()  # frames decoded after the move ended
         crashed = reply is not None and ("motor stop" in reply.lower()
                                          or "not flying" in reply.lower())
         if crashed:
@@ -842,6 +842,9 @@ class TelloEnv(EnvBase):
                                self.action_command(action), *target[:3])
             else:
                 reply = self._send(self.action_command(action), retry_on_timeout=False)
+                # fresh frames are counted from the reply on: frames decoded while the
+                # move ran may show the drone before it ended (more of them under load)
+                since = self._current_frame()
                 if reply is not None and ("motor stop" in reply.lower()
                                           or "not flying" in reply.lower()):
                     crashed = True
