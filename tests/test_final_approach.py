@@ -169,9 +169,13 @@ def test_tello_env_flies_the_last_leg_from_the_spheres_edge(emu):
         for on in (False, True):
             env.final_approach = approach if on else None
             td = env.reset()
+            yaw0 = emu.pose()[3]
             for a in script:
                 td = env.step(td.set("action", torch.tensor(a)))["next"]
                 assert not bool(td["done"]) or a == script[-1]
+                if on:  # the yaw the approach turns by is the state's after the move
+                    assert env._yaw == pytest.approx(math.radians(emu.pose()[3] - yaw0),
+                                                     abs=0.01), a
             assert not any(c.startswith("go ") for c in env.sent) or on
             if not on:  # 0.34 m from the goal point: the rule alone does not fire
                 assert not bool(td["reached"]) and not emu.ground_truth()["reached"]

@@ -415,6 +415,7 @@ class TelloEnv(EnvBase):
         self._steps = 0
         self._last_move = (0.0, 0.0, 0.0)
         self._prev_distance: float | None = None
+        self._state_since = None  # the state record when the last move's reply came
         self._keepalive_stop = threading.Event()
         self._keepalive_thread = None
         _OPEN_ENVS.add(self)
@@ -488,6 +489,15 @@ class TelloEnv(EnvBase):
             return {"tof": int(round(self._odom[2] * 100)), "h": int(round(self._odom[2] * 100)),
                     "bat": 100}
         return dict(self.tello.get_own_udp_object().get("state") or {})
+
+    def _state_record(self):
+        """The last state record object (djitellopy makes a new one per message)."""
+        if self.dry_run:
+            return None
+        try:
+            return self.tello.get_own_udp_object().get("state")
+        except (KeyError, AttributeError):
+            return None
 
     def battery(self) -> float:
         """The battery level (%) from the state stream (or ``battery?``)."""
@@ -714,6 +724,13 @@ class TelloEnv(EnvBase):
         in_sight = bool(meas.in_sight[0])
         dist = float(meas.distance[0]) if in_sight else 0.0
         angle = float(meas.angle[0]) if in_sight else 0.0
+        if self.final_approach is not None and self._state_since is not None:
+            # the approach turns its dead reckoning by the IMU's yaw: a state record sent
+            # before the move ended may hold the yaw before a turn
+            t0 = time.monotonic()
+            while self._state_record() is self._state_since and time.monotonic() - t0 < 0.5:
+                time.sleep(0.005)
+        self._state_since = None
         st = self._state()
         alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
         bat = float(st.get("bat", 0.0)) if st else 0.0
@@ -804,6 +821,7 @@ class TelloEnv(EnvBase):
         cmd = f"go {go[0]} {go[1]} {go[2]} {self.final_approach.speed}"
         reply = self._send(cmd, retry_on_timeout=False)
         since = self._current_frame()  # frames decoded after the move ended
+        self._state_since = self._state_record()
         crashed = reply is not None and ("motor stop" in reply.lower()
                                          or "not flying" in reply.lower())
         if crashed:
@@ -845,6 +863,7 @@ class TelloEnv(EnvBase):
                 # fresh frames are counted from the reply on: frames decoded while the
                 # move ran may show the drone before it ended (more of them under load)
                 since = self._current_frame()
+                self._state_since = self._state_record()
                 if reply is not None and ("motor stop" in reply.lower()
                                           or "not flying" in reply.lower()):
                     crashed = True
