@@ -189,3 +189,25 @@ def test_tello_env_flies_the_last_leg_from_the_spheres_edge(emu):
             assert gt["reached"] and gt["closest_goal_m"] < 0.05, gt
     finally:
         env.close()
+
+
+def test_the_replay_benchmark_prints_its_figures(capsys):
+    """``benchmarks/final_approach_replay.py`` on a logged development flight: one JSON
+    object per radius; the planned moves pass through the goal sphere."""
+    import json
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "benchmarks"))
+    import final_approach_replay as bench
+
+    log = root / "docs" / "_static" / "results" / "tello" / "s102_default_logged_steps.json"
+    figs = bench.main(["--logs", str(log), "--radius", "0.3", "0.4"])
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert lines == figs and [f["radius_m"] for f in figs] == [0.3, 0.4]
+    assert figs[1]["approaches"] > figs[0]["approaches"] > 50
+    assert all(f["pass_within_0_2"] >= 0.9 and f["heading_error_deg_median"] < 10
+               for f in figs)
+    with pytest.raises(SystemExit):
+        bench.main(["--logs", str(root / "README.md")])
