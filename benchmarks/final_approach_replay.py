@@ -29,10 +29,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 ROOT = Path(__file__).resolve().parents[1]
 LOGS = sorted((ROOT / "docs" / "_static" / "results" / "tello").glob("s102_*_steps.json"))
 
