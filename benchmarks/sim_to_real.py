@@ -82,7 +82,8 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
     n = s["success_sim"]["n"]
     return {"figure": "sim_to_real", "policy": policy, "seed": seed, "episodes": n,
             "layout": s.get("layout"), "arrival_head": s.get("arrival_head"),
-            "final_approach": s.get("final_approach"), "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
+            "final_approach": s.get("final_approach"),
+            "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
             "agreement": s["agreement"], "false_reached": s["false_reached"],
             "missed_reach": s["missed_reach"], "crashes": s["crashes"],
             "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],

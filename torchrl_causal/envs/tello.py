@@ -651,7 +651,7 @@ class TelloEnv(EnvBase):
         self._prev_dz = None  # the height sensor's offset from the goal height, last step
         self._prev_sighted = False  # the detector saw the board within range, last step
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
-        if getattr(self, "final_approach", None) is not None:
+        if self.final_approach is not None:
             self.final_approach.reset()
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
@@ -786,9 +786,34 @@ class TelloEnv(EnvBase):
         left = {"left": s, "right": -s}.get(name, 0.0)
         up = {"ascend": s, "descend": -s}.get(name, 0.0)
         dyaw = {"turn_left": 1.0, "turn_right": -1.0}.get(name, 0.0) * math.radians(self.turn)
+        return self._moved_pose(fwd, left, up, dyaw)
+
+    def _moved_pose(self, fwd: float, left: float, up: float, dyaw: float = 0.0):
+        """The dead-reckoned pose after a move ``(forward, left, up)`` (m) in the drone's
+        frame and a turn ``dyaw`` (rad)."""
         x, y, z, yaw = self._odom
         c, sn = math.cos(yaw), math.sin(yaw)
         return (x + c * fwd - sn * left, y + sn * fwd + c * left, z + up, yaw + dyaw)
+
+    def _fly(self, cmd: str, target, move) -> tuple[object, bool]:
+        """Sends the move ``cmd`` (an action's or the final approach's) and books it:
+        ``target`` the dead-reckoned pose after it, ``move`` its ``(right, forward, up)``.
+        Returns ``(since, crashed)``: the frame to count fresh frames from (the reply's;
+        frames decoded while the move ran may show the drone before it ended, more of
+        them under load) and whether the drone answered that it is down."""
+        reply = self._send(cmd, retry_on_timeout=False)
+        since = self._current_frame()
+        self._state_since = self._state_record()
+        if reply is not None and ("motor stop" in reply.lower()
+                                  or "not flying" in reply.lower()):
+            self.flying = False
+            self.tello.is_flying = False
+            LOGGER.warning("Tello: %r answered %r: crash", cmd, reply)
+            return since, True
+        self._odom = target
+        self._last_move = tuple(move)
+        self._dead_reckon(self._last_move)
+        return since, False
 
     def _move_in_camera_frame(self, action: int) -> tuple[float, float, float]:
         """The move of ``action``, ``(right, forward, up)`` in m (the reach rule's
@@ -809,29 +834,15 @@ class TelloEnv(EnvBase):
         """Flies the final approach ``go = (forward, left, up)`` (cm) and observes again;
         returns ``(obs, crashed)`` (``obs`` unchanged when the geofence refuses it)."""
         fwd, left, up = (v / 100.0 for v in go)
-        x, y, z, yaw = self._odom
-        c, s = math.cos(yaw), math.sin(yaw)
-        target = (x + c * fwd - s * left, y + s * fwd + c * left, z + up, yaw)
+        target = self._moved_pose(fwd, left, up)
         if not self._inside(target):
             LOGGER.warning("Tello: final approach %s refused, it would leave the geofence/height "
                            "limits", go)
             return obs, False
-        self._last_move = (0.0, 0.0, 0.0)
+        self._last_move = (0.0, 0.0, 0.0)  # until the move is flown
         self.approaches += 1
-        cmd = f"go {go[0]} {go[1]} {go[2]} {self.final_approach.speed}"
-        reply = self._send(cmd, retry_on_timeout=False)
-        since = self._current_frame()  # frames decoded after the move ended
-        self._state_since = self._state_record()
-        crashed = reply is not None and ("motor stop" in reply.lower()
-                                         or "not flying" in reply.lower())
-        if crashed:
-            self.flying = False
-            self.tello.is_flying = False
-            LOGGER.warning("Tello: %r answered %r: crash", cmd, reply)
-        else:
-            self._odom = target
-            self._last_move = (-left, fwd, up)
-            self._dead_reckon(self._last_move)
+        since, crashed = self._fly(f"go {go[0]} {go[1]} {go[2]} {self.final_approach.speed}",
+                                   target, (-left, fwd, up))
         return self._observe(since, crashed=crashed), crashed
 
     def _inside(self, pose) -> bool:
@@ -859,22 +870,8 @@ class TelloEnv(EnvBase):
                                "(dead-reckoned target x=%.2f y=%.2f z=%.2f)",
                                self.action_command(action), *target[:3])
             else:
-                reply = self._send(self.action_command(action), retry_on_timeout=False)
-                # fresh frames are counted from the reply on: frames decoded while the
-                # move ran may show the drone before it ended (more of them under load)
-                since = self._current_frame()
-                self._state_since = self._state_record()
-                if reply is not None and ("motor stop" in reply.lower()
-                                          or "not flying" in reply.lower()):
-                    crashed = True
-                    self.flying = False
-                    self.tello.is_flying = False
-                    LOGGER.warning("Tello: %r answered %r: crash", self.action_command(action),
-                                   reply)
-                else:
-                    self._odom = target
-                    self._last_move = self._move_in_camera_frame(action)
-                    self._dead_reckon(self._last_move)
+                since, crashed = self._fly(self.action_command(action), target,
+                                           self._move_in_camera_frame(action))
             obs = self._observe(since, crashed=crashed, out_of_bounds=out_of_bounds)
             if (self.final_approach is not None and not crashed and not out_of_bounds
                     and not bool(obs["reached"]) and self._prev_offset is not None):
