@@ -366,6 +366,15 @@ def perception_models(spec: str, emu=None, depth_weights=None, detector_weights=
     return getattr(importlib.import_module(mod), fn)()
 
 
+def layout_fence(layout):
+    """An emulated layout's arena as ``TelloEnv``'s ``(geofence, geofence_origin,
+    max_height)``: the arena in the world frame, and the start pose (turned by its yaw) in it.
+    ``EgoMap(geofence="env")`` reads the same fence, as it reads the arena in ``DroneNavEnv``."""
+    x0, y0, _ = (float(v) for v in layout.start_pos)
+    return (tuple(float(v) for v in layout.arena), (x0, y0, float(layout.start_yaw_deg)),
+            float(layout.height))
+
+
 def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=None):
     import recipe_utils as ru
     import train as train_recipe
@@ -378,11 +387,8 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
         kw["final_approach"] = getattr(args, "final_approach", None)
-    if layout is not None:  # the emulated scene's flight volume, in the take-off frame
-        x0, y0, _ = layout.start_pos
-        xa, ya, xb, yb = layout.arena
-        kw["geofence"] = (xa - x0, ya - y0, xb - x0, yb - y0) if layout.start_yaw_deg == 0 else None
-        kw["max_height"] = float(layout.height)
+    if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
+        kw.update(zip(("geofence", "geofence_origin", "max_height"), layout_fence(layout)))
     real = args.host is not None
     env = TelloEnv(
         tello, detector=detector, depth_estimator=depth, image_size=cfg.env.image_size,
@@ -557,7 +563,9 @@ def main(argv=None) -> dict:
 
             def new_episode(env):
                 emu.reset_world()
-                lay = emu.env.layout  # this layout's goal height and board
+                lay = emu.env.layout  # this layout's goal height, board and arena
+                fence, origin, ceiling = layout_fence(lay)
+                env.set_geofence(fence, origin=origin, max_height=ceiling)
                 env.reach_rule = reach_rule(
                     args, float(lay.goal_point()[2]) if args.reach_height is not None else None,
                     layout=lay, depth=depth)

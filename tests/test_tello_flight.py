@@ -323,3 +323,55 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
     with pytest.raises(SystemExit):
         sim_to_real.main(["--map", "auto"])
     assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
+
+
+def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():
+    """fly_tello gives TelloEnv each emulated layout's arena with the start pose in it
+    (``layout_fence``; before, the first layout's fence and none at all for a turned start):
+    the env refuses exactly the moves that leave that layout's arena, and EgoMap's
+    ``geofence='env'`` over it holds the fence it holds over the DroneNavEnv of that layout."""
+    import math
+
+    import numpy as np
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_causal.envs import DroneNavEnv, TelloEnv
+    from torchrl_causal.perception.goal import SimGoalDetector
+    from torchrl_causal.transforms import EgoMap
+
+    class NoGoal(SimGoalDetector):
+        def detect(self, pixels, depth=None, **_):
+            return torch.zeros(len(pixels), 0, 4), torch.zeros(len(pixels), 0)
+
+    sim = TransformedEnv(DroneNavEnv(layout="random", split="heldout", seed=7),
+                         EgoMap(geofence="env"))
+    tello = TelloEnv(dry_run=True, verbose=False, detector=NoGoal(),
+                     depth_estimator=lambda p: torch.full(p.shape[:3], 5.0))
+    real = TransformedEnv(tello, EgoMap(geofence="env"))
+    rng = np.random.default_rng(0)
+    turned = 0
+    for _ in range(4):
+        sim.reset()
+        lay = sim.base_env.layout
+        fence, origin, ceiling = fly_tello.layout_fence(lay)
+        tello.set_geofence(fence, origin=origin, max_height=ceiling)
+        real.reset()
+        assert torch.allclose(real.transform._state["fence"], sim.transform._state["fence"])
+        turned += abs(lay.start_yaw_deg) > 1.0
+        x0, y0, _ = lay.start_pos
+        yaw = math.radians(lay.start_yaw_deg)
+        xa, ya, xb, yb = lay.arena
+        for p in rng.uniform(-8.0, 8.0, size=(200, 2)):  # points of the take-off frame
+            wx = x0 + math.cos(yaw) * p[0] - math.sin(yaw) * p[1]
+            wy = y0 + math.sin(yaw) * p[0] + math.cos(yaw) * p[1]
+            assert tello._inside((p[0], p[1], 1.0, 0.0)) == (xa <= wx <= xb and ya <= wy <= yb)
+        assert not tello._inside((0.0, 0.0, ceiling + 0.05, 0.0))
+    assert turned >= 2  # held-out layouts start turned: the case that had no fence
+    real.close()
+    sim.close()
+    with pytest.raises(ValueError, match="geofence_origin"):
+        tello.set_geofence((-1.0, -1.0, 1.0, 1.0), origin=(0.0, 0.0))
+    with pytest.raises(ValueError, match="take-off point"):
+        tello.set_geofence((-1.0, -1.0, 1.0, 1.0), origin=(2.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="max_height"):
+        tello.set_geofence((-1.0, -1.0, 1.0, 1.0), max_height=-1.0)

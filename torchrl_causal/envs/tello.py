@@ -146,6 +146,27 @@ class TelloVideoError(TelloError):
     """
 
 
+def _check_geofence(geofence, origin):
+    """``(geofence or None, origin)`` as floats; the take-off point must lie inside."""
+    if (not isinstance(origin, (tuple, list)) or len(origin) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in origin)):
+        raise ValueError(f"geofence_origin must be (x, y, yaw_deg), three finite numbers, "
+                         f"got {origin!r}")
+    origin = tuple(float(v) for v in origin)
+    if geofence is None:
+        return None, origin
+    ox, oy = origin[:2]
+    if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       for v in geofence)
+            or not (geofence[0] < ox < geofence[2] and geofence[1] < oy < geofence[3])):
+        raise ValueError("geofence must be None or (x_min, y_min, x_max, y_max) around the "
+                         f"take-off point {(ox, oy)} (x_min < x < x_max, y_min < y < y_max), "
+                         f"got {geofence!r}")
+    return tuple(float(v) for v in geofence), origin
+
+
 def _num(name, value, low=None, strict=False):
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if ok and low is not None:
@@ -202,9 +223,14 @@ class TelloEnv(EnvBase):
             fired, the env flies the last leg itself (one SDK ``go x y z speed`` to the
             estimated goal point) within the same step and observes again
             (docs/tello.rst, "A final approach"); None (default): never.
-        geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the take-off frame
-            (x forward, y left at take-off), checked on the dead-reckoned
-            position before each move; None: no geofence.
+        geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
+            default the take-off frame: x forward, y left at take-off), checked on
+            the dead-reckoned position before each move; None: no geofence.
+        geofence_origin: the take-off pose ``(x, y, yaw_deg)`` in the fence's frame
+            (default ``(0, 0, 0)``: the fence is given in the take-off frame). An
+            emulated layout's arena is a rectangle of the world frame, and its drone
+            may start turned: ``fly_tello.py`` passes the arena and the start pose
+            (:meth:`set_geofence` changes both between episodes).
         min_height: lowest allowed height (m) for a descend and for the measured height.
         max_height: highest allowed height (m).
         min_battery_takeoff: battery (%) needed to take off.
@@ -265,6 +291,7 @@ class TelloEnv(EnvBase):
         arrival_fusion: bool = False,
         final_approach: FinalApproach | float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
+        geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
         max_height: float = 2.5,
         min_battery_takeoff: float = 20.0,
@@ -326,12 +353,7 @@ class TelloEnv(EnvBase):
         if final_approach is not None and arrival_head is None:
             raise ValueError("final_approach flies to the arrival head's estimate of the goal "
                              "point: it needs an arrival_head")
-        if geofence is not None:
-            if (not isinstance(geofence, (tuple, list)) or len(geofence) != 4
-                    or not all(isinstance(v, (int, float)) for v in geofence)
-                    or not (geofence[0] < 0 < geofence[2] and geofence[1] < 0 < geofence[3])):
-                raise ValueError("geofence must be None or (x_min, y_min, x_max, y_max) with "
-                                 f"x_min < 0 < x_max and y_min < 0 < y_max, got {geofence!r}")
+        geofence, geofence_origin = _check_geofence(geofence, geofence_origin)
         _num("min_height", min_height, 0)
         _num("max_height", max_height, 0, strict=True)
         if not min_height < max_height:
@@ -373,7 +395,7 @@ class TelloEnv(EnvBase):
         self._world = np.zeros(2)  # dead reckoning turned by the IMU's yaw (final approach)
         self._yaw = 0.0  # the IMU's yaw (rad, counter-clockwise) at the last observation
         self._forget_arrival()
-        self.geofence = None if geofence is None else tuple(float(v) for v in geofence)
+        self.geofence, self.geofence_origin = geofence, geofence_origin
         self.min_height = float(min_height)
         self.max_height = float(max_height)
         self.min_battery_takeoff = float(min_battery_takeoff)
@@ -845,12 +867,40 @@ class TelloEnv(EnvBase):
                                    target, (-left, fwd, up))
         return self._observe(since, crashed=crashed), crashed
 
+    def set_geofence(self, geofence, origin=(0.0, 0.0, 0.0), max_height: float | None = None):
+        """Replaces the geofence (and the height limit), e.g. between episodes: the
+        arguments of ``geofence``, ``geofence_origin`` and ``max_height``, checked as there.
+
+        Example:
+            >>> import torch
+            >>> from torchrl_causal.envs.tello import TelloEnv
+            >>> from torchrl_causal.perception.goal import SimGoalDetector
+            >>> env = TelloEnv(dry_run=True, detector=SimGoalDetector(), verbose=False,
+            ...                depth_estimator=lambda p: torch.ones(p.shape[:3]))
+            >>> # an arena of the world frame; the drone takes off at (0.2, -2.0), turned 30 deg
+            >>> env.set_geofence((-1.2, -3.0, 6.0, 3.0), origin=(0.2, -2.0, 30.0), max_height=2.9)
+            >>> env._inside((1.0, 0.0, 1.0, 0.0)), env._inside((0.0, -1.5, 1.0, 0.0))
+            (True, False)
+            >>> env.close()
+        """
+        geofence, origin = _check_geofence(geofence, origin)
+        if max_height is not None:
+            _num("max_height", max_height, 0, strict=True)
+            if not self.min_height < max_height:
+                raise ValueError(f"need min_height < max_height, got {self.min_height!r}, "
+                                 f"{max_height!r}")
+            self.max_height = float(max_height)
+        self.geofence, self.geofence_origin = geofence, origin
+
     def _inside(self, pose) -> bool:
         x, y, z, _ = pose
         if not self.min_height <= z <= self.max_height:
             return False
         if self.geofence is None:
             return True
+        ox, oy, oyaw = self.geofence_origin
+        c, s = math.cos(math.radians(oyaw)), math.sin(math.radians(oyaw))
+        x, y = ox + c * x - s * y, oy + s * x + c * y  # the take-off frame -> the fence's
         x0, y0, x1, y1 = self.geofence
         return x0 <= x <= x1 and y0 <= y <= y1
 

@@ -313,9 +313,11 @@ class EgoMap(Transform):
         base = getattr(parent, "base_env", None) if parent is not None else None
         layout = getattr(base, "layout", None)
         if layout is None and hasattr(base, "geofence") and hasattr(base, "max_height"):
-            # a TelloEnv: its own geofence (None: none), in the take-off frame, and its
-            # height limit
+            # a TelloEnv: its own geofence (None: none), in its frame, with the take-off
+            # pose in that frame (geofence_origin), and its height limit
             if base.geofence is not None:
+                ox, oy, oyaw = getattr(base, "geofence_origin", (0.0, 0.0, 0.0))
+                out[:, 0:3] = torch.tensor([ox, oy, math.radians(oyaw)], device=device)
                 out[:, 3:7] = torch.tensor(tuple(base.geofence), device=device)
             out[:, 7] = float(base.max_height)
             return out
