@@ -64,6 +64,9 @@ def test_specs_and_observations_match_dronenavenv(env, emu):
     for key in ("goal_distance", "goal_angle", "altitude"):
         assert float(td[key]) == pytest.approx(float(r[key]), abs=0.05), key
     assert torch.equal(td["depth"], r["depth"])  # the sim depth aid renders the same view
+    # the measured goal box (EgoMap reads the goal's elevation from it), as DroneNavEnv's
+    assert bool(td["goal_in_sight"]) and float(td["goal_box"][3]) > 0
+    assert torch.allclose(td["goal_box"], r["goal_box"], atol=1.0)
     assert (td["pixels"].float() - r["pixels"].float()).abs().mean() < 4.0  # H.264 + resize
     assert float(td["reward"]) == pytest.approx(
         100 - float(td["goal_distance"]) - abs(float(td["goal_angle"])), abs=1e-4)

@@ -11,7 +11,10 @@ the aspect of ``image_size`` and resized), ``depth`` float32 ``[H, W]`` (metres,
 from ``depth_estimator``), ``altitude`` ``[1]`` (the state's ``tof``, m),
 ``goal_in_sight`` / ``goal_distance`` / ``goal_angle`` (the
 :class:`~torchrl_causal.perception.goal.GoalMeter` of ``detector``, as in
-:class:`DroneNavEnv`), ``battery`` ``[1]`` (%), and the outcome flags
+:class:`DroneNavEnv`), ``goal_box`` ``[4]`` (the detector's box in pixels of
+``image_size``, zeros when the goal is not in sight; ``DroneNavEnv``'s key of
+the same name, from which :class:`~torchrl_causal.transforms.EgoMap` reads the
+goal's elevation), ``battery`` ``[1]`` (%), and the outcome flags
 ``crashed`` / ``reached`` / ``out_of_bounds``.
 
 Perception is pluggable and RGB-only: ``detector`` is any
@@ -448,6 +451,10 @@ class TelloEnv(EnvBase):
             self.image_size, self.max_depth, self.device,
             battery=lambda h, w, dev: Bounded(0.0, 100.0, shape=(1,), dtype=torch.float32,
                                               device=dev),
+            # the detector's box, as DroneNavEnv's goal_box: EgoMap reads the goal's
+            # elevation from its vertical place
+            goal_box=lambda h, w, dev: Bounded(0.0, float(max(h, w)), shape=(4,),
+                                               dtype=torch.float32, device=dev),
         )
         for name, spec in specs.items():
             setattr(self, name, spec)
@@ -769,7 +776,10 @@ class TelloEnv(EnvBase):
                 width=self.image_size[1], altitude=alt, goal_offset=offset)
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
+        goal_box = torch.tensor(box if in_sight else [0.0] * 4, dtype=torch.float32)
+        goal_box = goal_box.clamp(0.0, float(max(self.image_size)))
         return {"pixels": pixels, "depth": depth[0], "altitude": s[0:1], "battery": s[1:2],
+                "goal_box": goal_box,
                 "goal_in_sight": f[0:1], "goal_distance": s[2:3], "goal_angle": s[3:4],
                 "crashed": f[1:2], "reached": f[2:3], "out_of_bounds": f[3:4]}
 
