@@ -262,3 +262,26 @@ def test_bad_options_are_named(kwargs, match):
             "depth_estimator": lambda p: torch.ones(p.shape[:3])}
     with pytest.raises(ValueError, match=match):
         TelloEnv(**{**base, **kwargs})
+
+
+def test_egomap_remembers_the_goal_where_it_does_over_dronenavenv(env, emu):
+    """EgoMap over TelloEnv (the emulator's perception aids) keeps the goal where it keeps it
+    over DroneNavEnv at the same poses, its height above the camera included: that height
+    comes from ``goal_box``, which TelloEnv did not write (the goal then sat at camera
+    height on the Tello path, ``goal_memory[3] == 0``)."""
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_causal.transforms import EgoMap
+
+    tello = TransformedEnv(env, EgoMap())
+    ref = TransformedEnv(DroneNavEnv(seed=0), EgoMap())
+    td, r = tello.reset(), ref.reset()
+    for a in (4, 0, 4):  # climb above the board's centre, then look at it from there
+        td = tello.step(td.set("action", torch.tensor(a)))["next"]
+        r = ref.step(r.set("action", torch.tensor(a)))["next"]
+        assert bool(td["goal_memory"][0]) and bool(r["goal_memory"][0])
+        assert torch.allclose(td["goal_memory"], r["goal_memory"], atol=0.02), (
+            td["goal_memory"], r["goal_memory"])
+    assert float(r["goal_memory"][3]) < -0.2  # the goal is below the camera now
+    ref.close()
+    env.land()
