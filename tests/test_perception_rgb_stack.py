@@ -57,6 +57,13 @@ def test_rgb_stack_in_env_reads_no_simulator_truth(models):
     est = tenv.reset()["depth"]
     assert not torch.equal(est, truth)
     assert (est - truth).abs().mean() / truth.mean() < 0.5
+    # goal_box (EgoMap's goal elevation) is the detector's box, not the segmentation's:
+    # the same board, measured
+    assert stack[1].box_key == "goal_box"
+    truth = raw.step(raw.reset().set("action", torch.tensor(0)))["next"]["goal_box"]
+    meas = tenv.step(tenv.reset().set("action", torch.tensor(0)))["next"]["goal_box"]
+    assert not torch.equal(meas, truth)
+    assert (meas - truth).abs().max() < 6.0  # pixels of 84 x 84
     tenv.close()
     raw.close()
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from torchrl_causal.perception.goal import GoalMeter, SimGoalDetector
@@ -39,6 +39,12 @@ class GoalFeatures(Transform):
         gt_keys: ``(box_key, pixels_key)`` of the simulator ground truth, or
             None to pass none (default: automatic, from the detector type).
         out_keys: ``(in_sight, distance, angle)`` output keys.
+        box_key: also write the measured box there (float32 ``[..., 4]``, pixels,
+            zeros when not in sight), or None (default). The RGB stack of
+            :func:`~torchrl_causal.transforms.make_causal_transforms` writes it to
+            ``"goal_box"``, over ``DroneNavEnv``'s ground truth, so that
+            :class:`~torchrl_causal.transforms.EgoMap` reads the goal's elevation from
+            the detector's box, as it does on the Tello (``TelloEnv``'s ``goal_box``).
 
     Example:
         >>> import torch
@@ -64,6 +70,7 @@ class GoalFeatures(Transform):
         depth_key="depth",
         gt_keys="auto",
         out_keys=("goal_in_sight", "goal_distance", "goal_angle"),
+        box_key: str | None = None,
     ):
         if not isinstance(meter, GoalMeter):
             raise ValueError(f"meter must be a GoalMeter, got {meter!r}")
@@ -78,8 +85,12 @@ class GoalFeatures(Transform):
         out_keys = tuple(out_keys)
         if len(out_keys) != 3:
             raise ValueError(f"out_keys must be 3 keys (in_sight, distance, angle), got {out_keys!r}")
+        if box_key is not None and not isinstance(box_key, str):
+            raise ValueError(f"box_key must be a key (str) or None, got {box_key!r}")
         in_keys = [pixels_key, depth_key] + (list(gt_keys) if gt_keys is not None else [])
-        super().__init__(in_keys=in_keys, out_keys=list(out_keys))
+        super().__init__(in_keys=in_keys,
+                         out_keys=list(out_keys) + ([box_key] if box_key is not None else []))
+        self.box_key = box_key
         self.meter = meter
         self.gt_keys = None if gt_keys is None else tuple(gt_keys)
 
@@ -99,6 +110,10 @@ class GoalFeatures(Transform):
         next_tensordict.set(self.out_keys[0], in_sight.reshape(*batch, 1))
         next_tensordict.set(self.out_keys[1], distance.to(torch.float32).reshape(*batch, 1))
         next_tensordict.set(self.out_keys[2], m.angle.to(torch.float32).reshape(*batch, 1))
+        if self.box_key is not None:
+            box = torch.where(in_sight[:, None], m.box.to(torch.float32), torch.zeros_like(m.box,
+                                                                                       dtype=torch.float32))
+            next_tensordict.set(self.box_key, box.reshape(*batch, 4))
         return next_tensordict
 
     forward = _call
@@ -112,6 +127,11 @@ class GoalFeatures(Transform):
         observation_spec[self.out_keys[0]] = Categorical(
             2, shape=shape, dtype=torch.bool, device=device
         )
-        for key in self.out_keys[1:]:
+        for key in self.out_keys[1:3]:
             observation_spec[key] = Unbounded(shape=shape, dtype=torch.float32, device=device)
+        if self.box_key is not None:
+            h, w = observation_spec[self.in_keys[1]].shape[-2:]
+            observation_spec[self.box_key] = Bounded(
+                0.0, float(max(h, w)), shape=(*observation_spec.shape, 4), dtype=torch.float32,
+                device=device)
         return observation_spec

@@ -246,7 +246,8 @@ def _rgb_stack(env, *, n_points, exact, seed, thresholds, max_depth, center_frac
                                confidence_threshold=confidence_threshold, max_depth=max_depth)
     return Compose(
         EstimatedDepth(depth_estimator, max_depth=max_depth),
-        GoalFeatures(goal_meter, gt_keys=None),
+        # the detector's box over the simulator's: EgoMap reads the goal's elevation from it
+        GoalFeatures(goal_meter, gt_keys=None, box_key="goal_box"),
         DepthSections(n_points, exact=exact, max_depth=max_depth, invalid_value=invalid_value,
                       center_frac=center_frac, seed=seed, device=device),
         Discretize(thresholds, max_depth=max_depth),
