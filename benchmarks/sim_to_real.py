@@ -13,7 +13,10 @@ defaults -- RGB-only perception through the emulated camera path, noisy moves
 (``--noise``), the default arrival rule (``--arrival-head auto``, and with the
 head ``--final-approach auto``) -- and flies
 the same policy in :class:`~torchrl_causal.envs.DroneNavEnv` under the same
-noise model (``--compare-sim``). The thesis policy flies the thesis scene, the
+noise model (``--compare-sim``) on the emulator's own layouts and noise draws,
+episode by episode (``dronenav_paired``: both / emulator only / DroneNavEnv only /
+neither), with the simulator's perception or, with ``--compare-perception rgb``, the
+same RGB models. The thesis policy flies the thesis scene, the
 generalist held-out random layouts. Prints one JSON object per figure:
 
 * ``{"figure": "sim_to_real", "policy", "seed", ...}`` -- one seed's flights:
@@ -60,14 +63,16 @@ TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reache
 
 
 def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
-        map_depth: str | None = None) -> dict:
+        map_depth: str | None = None, compare_perception: str = "sim") -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
-    perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``.
+    perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``,
+    ``compare_perception`` its ``--compare-perception``.
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
+            "--compare-perception", compare_perception,
             "--out", str(out), "--overwrite"]
     for key, flag in (("detector", "--detector-weights"), ("depth", "--depth-weights")):
         if (weights or {}).get(key) is not None:
@@ -87,6 +92,9 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "agreement": s["agreement"], "false_reached": s["false_reached"],
             "missed_reach": s["missed_reach"], "crashes": s["crashes"],
             "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],
+            # DroneNavEnv flies the emulator's own layouts and noise draws: per-episode pairs
+            "dronenav_paired": s["dronenav"].get("paired"),
+            "dronenav_perception": s["dronenav"].get("perception", "sim"),
             "detector_weights": s.get("detector_weights", "shipped"),
             "depth_weights": s.get("depth_weights", "shipped"),
             "map": s.get("map"), "wall_s": s.get("wall_s")}
@@ -132,6 +140,9 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--map", choices=("exact", "estimated"), default=None,
                    help="fly_tello.py --map: EgoMap's depth model for a policy that reads its "
                         "map (default: fly_tello's, exact)")
+    p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
+                   help="fly_tello.py --compare-perception: DroneNavEnv's reference with the "
+                        "simulator's perception (default) or the same RGB models")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
@@ -149,7 +160,8 @@ def main(argv=None) -> list[dict]:
     for name in a.policies:
         per_seed = []
         for seed in a.seeds:
-            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map)
+            s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map,
+                    a.compare_perception)
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

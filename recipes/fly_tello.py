@@ -88,7 +88,14 @@ def parse_args(argv=None):
     p.add_argument("--out", default=None)
     p.add_argument("--max-steps", type=int, default=None, help="default: the run's env.max_steps")
     p.add_argument("--compare-sim", type=int, default=0,
-                   help="also run N greedy episodes in DroneNavEnv and compare")
+                   help="also run N greedy episodes in DroneNavEnv and compare: on the "
+                        "emulator's own layouts and noise draws (--seed), in its order, so the "
+                        "first min(N, --episodes) episodes are paired")
+    p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
+                   help="--compare-sim's perception: sim (default: the policy's own features, "
+                        "the simulator's detector and depth) or rgb (the shipped detector and "
+                        "MonoDepth on DroneNavEnv's renders, and --map's EgoMap: the same "
+                        "perception models as the flight)")
     p.add_argument("--video-size", default="240x320", help="emulator video HxW")
     p.add_argument("--time-scale", type=float, default=10.0, help="emulator motion speed-up")
     p.add_argument("--fov", type=float, default=None,
@@ -594,15 +601,34 @@ def main(argv=None) -> dict:
         from torchrl_causal.training import evaluate
 
         noise = ["env.noise=tello"] if args.noise else []
+        if args.compare_perception == "rgb":
+            noise += ["features.options.perception=rgb"] + (
+                [f"features.ego_map.depth={args.map}"] if uses_map else [])
         scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
-        res = evaluate(policy, env, args.compare_sim, seed=10_000_019 + seed * 1009,
+        # the emulator's env draws the same layouts and noise from --seed, but it resets
+        # once when it starts: DroneNavEnv's first episode is that reset's, dropped
+        res = evaluate(policy, env, args.compare_sim + 1, seed=seed, per_episode=True,
                        max_steps=args.max_steps)
-        k = int(round(res["success_rate"] * args.compare_sim))
-        lo, hi = wilson(k, args.compare_sim)
-        summary["dronenav"] = {"rate": res["success_rate"], "n": args.compare_sim,
+        eps = res["episodes"][1:]
+        k = sum(bool(e["success"]) for e in eps)
+        lo, hi = wilson(k, len(eps))
+        summary["dronenav"] = {"rate": k / len(eps), "n": len(eps),
                                "ci95": [round(lo, 4), round(hi, 4)],
-                               "mean_length": res["mean_length"]}
+                               "mean_length": float(np.mean([e["steps"] for e in eps])),
+                               "layouts": "the emulator's (paired, episode by episode)",
+                               "perception": args.compare_perception,
+                               "success_per_episode": [int(bool(e["success"])) for e in eps]}
+        if rows and rows[0]["success_sim"] != "":
+            # paired: the same layout and noise draws in both, episode by episode
+            pairs = list(zip([r["success_sim"] for r in rows], summary["dronenav"][
+                "success_per_episode"]))
+            summary["dronenav"]["paired"] = {
+                "episodes": len(pairs),
+                "both": sum(1 for a, b in pairs if a and b),
+                "emulator_only": sum(1 for a, b in pairs if a and not b),
+                "dronenav_only": sum(1 for a, b in pairs if b and not a),
+                "neither": sum(1 for a, b in pairs if not a and not b)}
     (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     return summary

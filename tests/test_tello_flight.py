@@ -40,6 +40,11 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert emu["rate"] == 1.0, summary  # every flight reaches the simulator's goal sphere
     lo, hi = sim["ci95"]
     assert lo <= emu["rate"] <= hi, summary  # within the DroneNavEnv policy's 95 % interval
+    # DroneNavEnv flew the emulator's own episodes: paired, one verdict each
+    paired = sim["paired"]
+    assert paired["episodes"] == 3 and sum(paired[k] for k in (
+        "both", "emulator_only", "dronenav_only", "neither")) == 3
+    assert len(sim["success_per_episode"]) == 3 and paired["both"] == sum(sim["success_per_episode"])
     # the run folder: one CSV row per episode, the onboard video decodes, the summary
     rows = pd.read_csv(out / "episodes.csv")
     assert list(rows["episode"]) == [1, 2, 3]
@@ -257,7 +262,8 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     bench = [sys.executable, str(ROOT / "benchmarks" / "sim_to_real.py")]
     # candidate weights fly in place of the shipped ones (here the shipped file, by path)
     r = subprocess.run(bench + ["--episodes", "2", "--seeds", "3", "--out", str(tmp_path),
-                                "--detector-weights", str(DEFAULT_WEIGHTS)],
+                                "--detector-weights", str(DEFAULT_WEIGHTS),
+                                "--compare-perception", "rgb"],
                        capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-3000:]
     figs = [json.loads(line) for line in r.stdout.splitlines()]
@@ -271,6 +277,8 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     assert (tmp_path / "thesis_seed3" / "episodes.csv").is_file()
     assert one["detector_weights"] == str(DEFAULT_WEIGHTS) and one["depth_weights"] == "shipped"
     assert one["map"] is None  # the thesis policy reads no EgoMap
+    # DroneNavEnv's reference flew the emulator's two episodes, on the same RGB models
+    assert one["dronenav_perception"] == "rgb" and one["dronenav_paired"]["episodes"] == 2
     # a candidate that is not there is named before anything flies
     r = subprocess.run(bench + ["--depth-weights", str(tmp_path / "nope.pt")],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
