@@ -144,10 +144,15 @@ def parse_args(argv=None):
                         "weights file of recipes/train_arrival.py; the --reach-offset distance "
                         "is then read from the camera frame by it instead of the depth map's "
                         "board plane (needs --reach-offset; trained on the thesis board). "
+                        "'depth': the depth map's board plane read as a head (BoardPlaneOffset: "
+                        "any board width, the segment between two steps' estimates, "
+                        "--final-approach). "
                         "'auto' (default): the shipped head with --reach-offset "
                         f"{HEAD_REACH_OFFSET} where it was measured -- RGB perception and the "
                         "1.0 m thesis board (the thesis scene, or a real drone with the field "
-                        "guide's printed board) -- else none; 'none': the depth map's rule")
+                        "guide's printed board) --, 'depth' with --reach-offset "
+                        f"{PLANE_REACH_OFFSET} on the emulator's random layouts with the "
+                        "simulator's depth, else none; 'none': the depth map's rule")
     p.add_argument("--arrival-fusion", action="store_true",
                    help="with the arrival head: average its estimates over the steps that did "
                         "not move the drone across the floor (turns, climbs)")
@@ -211,10 +216,11 @@ def parse_args(argv=None):
                     f"got --perception {a.perception!r}")
         if not Path(path).is_file():
             p.error(f"{flag} {path!r}: no such file")
-    if a.arrival_head == "auto":  # where the head was trained and flown (docs/tello.rst)
-        a.arrival_head = "shipped" if head_applies(a) else None
+    if a.arrival_head == "auto":  # where each head was measured (docs/tello.rst)
+        a.arrival_head = "shipped" if head_applies(a) else "depth" if plane_applies(a) else None
         if a.arrival_head is not None and a.reach_offset is None:
-            a.reach_offset = HEAD_REACH_OFFSET
+            a.reach_offset = HEAD_REACH_OFFSET if a.arrival_head == "shipped" \
+                else PLANE_REACH_OFFSET
     elif a.arrival_head == "none":
         a.arrival_head = None
     if a.arrival_head is not None:
@@ -225,7 +231,7 @@ def parse_args(argv=None):
             from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS
 
             a.arrival_head = str(DEFAULT_WEIGHTS)
-        if not Path(a.arrival_head).is_file():
+        if a.arrival_head != "depth" and not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
@@ -274,6 +280,10 @@ FINAL_APPROACH_RADIUS = 0.4
 #: shipped head inside the goal sphere's 0.2 m (docs/tello.rst, "A learned arrival head").
 HEAD_REACH_OFFSET = 0.15
 
+#: ``--reach-offset`` of ``--arrival-head auto`` where it reads the board plane: the goal
+#: sphere's own radius (the simulator's depth; docs/tello.rst, "The board plane as the head").
+PLANE_REACH_OFFSET = 0.2
+
 
 def _emulated_layout(args) -> str | None:
     """The emulated flight's layout (``--layout``, else the run's), None on a real drone."""
@@ -306,6 +316,18 @@ def head_applies(args) -> bool:
         return False
     layout = _emulated_layout(args)
     return layout is None or layout == "thesis"
+
+
+def plane_applies(args) -> bool:
+    """Whether ``--arrival-head auto`` reads the depth map's board plane as the head
+    (:class:`~torchrl_causal.envs.BoardPlaneOffset`, ``--reach-offset 0.2``, and the final
+    approach): the emulator's random layouts with the simulator's depth (``--perception sim``
+    or ``sim-depth``), where it was measured (docs/tello.rst, "The board plane as the
+    head"); not on MonoDepth's depth, which reads a board filling the view 0.25-0.40 m
+    short."""
+    layout = _emulated_layout(args)
+    return (layout is not None and layout != "thesis"
+            and args.perception in ("sim", "sim-depth"))
 
 
 def reach_rule(args, goal_height=None, layout=None, depth=None):
@@ -373,29 +395,25 @@ def perception_models(spec: str, emu=None, depth_weights=None, detector_weights=
     return getattr(importlib.import_module(mod), fn)()
 
 
-def layout_fence(layout):
-    """An emulated layout's arena as ``TelloEnv``'s ``(geofence, geofence_origin,
-    max_height)``: the arena in the world frame, and the start pose (turned by its yaw) in it.
-    ``EgoMap(geofence="env")`` reads the same fence, as it reads the arena in ``DroneNavEnv``."""
-    x0, y0, _ = (float(v) for v in layout.start_pos)
-    return (tuple(float(v) for v in layout.arena), (x0, y0, float(layout.start_yaw_deg)),
-            float(layout.height))
-
-
 def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=None):
     import recipe_utils as ru
     import train as train_recipe
     from torchrl_causal.envs import TelloEnv
 
     kw = {"reach_rule": args.reach_rule}
-    if getattr(args, "arrival_head", None):
+    if getattr(args, "arrival_head", None) == "depth":
+        from torchrl_causal.envs import BoardPlaneOffset
+
+        kw["arrival_head"] = BoardPlaneOffset()
+    elif getattr(args, "arrival_head", None):
         from torchrl_causal.perception.arrival import GoalOffsetEstimator
 
         kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
+    if kw.get("arrival_head") is not None:
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
         kw["final_approach"] = getattr(args, "final_approach", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
-        kw.update(zip(("geofence", "geofence_origin", "max_height"), layout_fence(layout)))
+        kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
     env = TelloEnv(
         tello, detector=detector, depth_estimator=depth, image_size=cfg.env.image_size,
@@ -571,7 +589,7 @@ def main(argv=None) -> dict:
             def new_episode(env):
                 emu.reset_world()
                 lay = emu.env.layout  # this layout's goal height, board and arena
-                fence, origin, ceiling = layout_fence(lay)
+                fence, origin, ceiling = lay.fence()
                 env.set_geofence(fence, origin=origin, max_height=ceiling)
                 env.reach_rule = reach_rule(
                     args, float(lay.goal_point()[2]) if args.reach_height is not None else None,

@@ -203,3 +203,144 @@ def test_offset_is_three_dimensional_with_a_goal_height():
     # 0.15 m above: outside max_height_offset, inside the sphere -> the offset decides
     assert rule(**_m(altitude=1.15), goal_offset=0.152)
     assert not rule(**_m(altitude=1.15), goal_offset=0.25)
+
+
+# ------------------------------------------------------------------ the board plane as a head
+
+def _board_frame(lay, x, y):
+    """The drone centre's ``(ahead, lateral)`` from the goal point, in the board's frame."""
+    gp, n = np.asarray(lay.goal_point()), np.asarray(lay.goal_normal())
+    v = np.array([x - gp[0], y - gp[1]])
+    side = np.array([-n[1], n[0]])
+    return float(v @ n[:2]), float(v @ side)
+
+
+def test_board_plane_head_reads_the_drones_place_in_the_boards_frame_on_real_renders():
+    """On a held-out layout's real renders, wherever a side edge of the board is in view,
+    BoardPlaneOffset reads the drone centre's (ahead, lateral) within 5 cm; closer in,
+    where the board fills the view, its memory carries the lateral place on by the moves
+    since (within 5 cm), where the box centre's ray alone is 0.1 m off or more."""
+    from torchrl_causal.envs import BoardPlaneOffset, DroneNavEnv
+    from torchrl_causal.envs.layouts import RandomLayoutGenerator
+
+    lay = RandomLayoutGenerator("heldout", seed=0).layout(7)
+    env = DroneNavEnv(lay, image_size=(84, 84), seed=0)
+    env.reset()
+    kw = dict(board_width=float(lay.goal_size[0]), goal_standoff=float(lay.goal_standoff))
+    try:
+        gp, gc, n = lay.goal_point(), np.asarray(lay.goal_center), lay.goal_normal()
+        rng = np.random.default_rng(1)
+        errors = []
+        for _ in range(16):
+            phi = math.radians(rng.uniform(-45, 45))
+            r = rng.uniform(0.9, 1.4)
+            base = math.atan2(n[1], n[0]) + phi
+            x, y = gc[0] + r * math.cos(base), gc[1] + r * math.sin(base)
+            depth, box = _view(env, x, y, rng.uniform(-10, 10))
+            if box[0] > 0 or box[2] < 84:
+                est = BoardPlaneOffset()(depth, box, env.hfov_deg, **kw)
+                assert est is not None
+                errors.append(np.abs(est - np.array(_board_frame(lay, x, y))).max())
+        assert len(errors) >= 8 and max(errors) < 0.05, errors
+        # from 1.2 m out, 0.25 m to the side (both edges in view) to 0.05 m from the goal
+        # point's plane at the same lateral place, square on: the board fills the view
+        head, plain = BoardPlaneOffset(), BoardPlaneOffset(memory=False)
+        side = np.array([-n[1], n[0]])
+        far = np.asarray(gp[:2]) + 0.8 * np.asarray(n[:2]) + 0.25 * side
+        near = np.asarray(gp[:2]) + 0.05 * np.asarray(n[:2]) + 0.25 * side
+        yaw = math.atan2(-n[1], -n[0])
+        for (x, y) in (far, near):
+            env._executor.set_pose(x, y, gp[2], yaw)
+            obs = env._observe(False, False)
+            depth, box = obs["depth"].numpy(), obs["goal_box"].tolist()
+            est = head(depth, box, env.hfov_deg, pose=(x, y, yaw), **kw)
+            guess = plain(depth, box, env.hfov_deg, pose=(x, y, yaw), **kw)
+        assert box == [0.0, 0.0, 84.0, 84.0] or (box[0] == 0 and box[2] == 84)
+        truth = np.array(_board_frame(lay, *near))
+        assert np.abs(est - truth).max() < 0.05, (est, truth)
+        assert abs(guess[1] - truth[1]) > 0.1, (guess, truth)
+        head.reset()  # a new episode: nothing to carry on
+        assert abs(head(depth, box, env.hfov_deg, pose=tuple(near) + (yaw,), **kw)[1]
+                   - truth[1]) > 0.1
+    finally:
+        env.close()
+
+
+def test_board_plane_head_refuses_what_is_not_the_boards_plane():
+    """An obstacle in front of part of the board breaks the line fit: no estimate (the
+    plain goal-point offset reads it); a nearer obstacle just beyond a side of the box
+    hides the board's end: that side is not taken for its edge."""
+    from torchrl_causal.envs import BoardPlaneOffset
+    from torchrl_causal.envs.reach import goal_point_offset
+
+    head = BoardPlaneOffset(memory=False)
+    depth = np.full((84, 84), 1.0)
+    depth[:, 40:84] = 0.5  # the right half of the box is an obstacle, 0.5 m nearer
+    assert head(depth, (20, 0, 84, 84), 60.0) is None
+    assert math.isfinite(goal_point_offset(depth, (20, 0, 84, 84), 60.0)[0])
+    # the board at 1 m fills columns 30-84; something at 0.6 m covers columns 0-30
+    depth = np.full((84, 84), 1.0)
+    depth[:, :30] = 0.6
+    hidden = head(depth, (30, 0, 84, 84), 60.0)
+    edge = BoardPlaneOffset(memory=False, max_residual=0.03)(np.full((84, 84), 1.0),
+                                                             (30, 0, 84, 84), 60.0)
+    centre_ray = goal_point_offset(np.full((84, 84), 1.0), (30, 0, 84, 84), 60.0,
+                                   board_width=None)
+    assert hidden is not None and edge is not None
+    assert abs(hidden[1] - edge[1]) > 0.1  # the hidden side was not read as the edge
+    # ... it fell back on the box centre's ray: the same distance as with no board width
+    assert math.hypot(*hidden) == pytest.approx(centre_ray[0], abs=1e-6)
+    with pytest.raises(ValueError, match="BoardPlaneOffset.max_residual"):
+        BoardPlaneOffset(max_residual=-1.0)
+    with pytest.raises(ValueError, match="BoardPlaneOffset.max_age"):
+        BoardPlaneOffset(max_age=1.5)
+
+
+def test_tello_env_flies_the_board_plane_head():
+    """TelloEnv(arrival_head=BoardPlaneOffset()) declares reached at the goal point and
+    not 0.5 m beside it, as the offset rule does, without a learned head's frames."""
+    from torchrl_causal.envs import BoardPlaneOffset
+    from torchrl_causal.perception.goal import GoalDetector
+
+    class Box(GoalDetector):
+        def __init__(self, box):
+            self.box = box
+
+        def detect(self, pixels, depth=None, **_):
+            return torch.tensor([[self.box]]), torch.tensor([[0.9]])
+
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.2, board_width=1.0, goal_standoff=0.45)
+    for box, reached in (([0.0, 0.0, 84.0, 84.0], True), ([40.0, 0.0, 84.0, 84.0], False)):
+        env = TelloEnv(dry_run=True, detector=Box(box), verbose=False,
+                       depth_estimator=lambda p: torch.full(p.shape[:3], 0.345),
+                       reach_rule=rule, arrival_head=BoardPlaneOffset(), final_approach=0.4)
+        m = env.measure_frame(np.zeros((720, 960, 3), np.uint8))
+        assert m["reached"] is reached, (box, m)
+        env.close()
+
+
+def test_board_plane_head_reads_no_sliver_and_no_board_seen_edge_on():
+    """A box narrower than a quarter of the image, or a board whose normal is more than
+    70 deg off the camera's axis, gives no estimate (in flight both read a drone beside
+    the board as in front of its goal point)."""
+    from torchrl_causal.envs import BoardPlaneOffset
+
+    head = BoardPlaneOffset(memory=False)
+    flat = np.full((84, 84), 1.0)
+    assert head(flat, (70, 0, 84, 84), 60.0) is None  # 14 columns
+    assert head(flat, (60, 0, 84, 84), 60.0) is not None  # 24 columns
+    assert BoardPlaneOffset(min_width=0.1)(flat, (70, 0, 84, 84), 60.0) is not None
+    # a plane turned 75 deg: z = 1 + x * tan(75 deg) along the rows' rays
+    f = 42 / math.tan(math.radians(30))
+    cols = np.arange(84) + 0.5 - 42
+    slope = math.tan(math.radians(75))
+    z = 1.0 / (1.0 - slope * cols / f)
+    z = np.where(z > 0, z, np.nan)
+    turned = np.tile(z, (84, 1))
+    ok = np.isfinite(z) & (z < 10)
+    lo = int(np.argmax(ok))
+    assert head(turned, (lo, 0, lo + 30, 84), 60.0) is None
+    assert BoardPlaneOffset(memory=False, max_facing=80.0)(turned, (lo, 0, lo + 30, 84),
+                                                           60.0) is not None
+    with pytest.raises(ValueError, match="BoardPlaneOffset.min_width"):
+        BoardPlaneOffset(min_width=2.0)

@@ -143,6 +143,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--reach-offset", "0"], "ReachRule.max_goal_offset"),
     (["--reach-offset", "0.2", "--board-width", "-1"], "ReachRule.board_width"),
     (["--arrival-head", "x.pt"], "--arrival-head 'x.pt' needs --reach-offset"),
+    (["--arrival-head", "depth"], "--arrival-head 'depth' needs --reach-offset"),
     (["--host", "192.168.10.1", "--seed", "3", "--dry-run"], "the option is the emulator's"),
     (["--arrival-head", "missing.pt", "--reach-offset", "0.2"], "'missing.pt': no such file"),
     (["--arrival-head", "none", "--arrival-fusion"], "--arrival-fusion fuses the arrival head"),
@@ -204,8 +205,9 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
 
 
 def test_the_full_width_check_is_the_default_on_random_layouts():
-    """--reach-full-width auto: on for the emulator's random layouts (no arrival head), off on
-    the thesis board and on a real drone; on / off / a bare flag override it."""
+    """--reach-full-width auto: on for the emulator's random layouts (no arrival head, or
+    none chosen), off on the thesis board and on a real drone; on / off / a bare flag
+    override it."""
     def full_width(*argv):
         return fly_tello.parse_args(list(argv)).reach_rule.full_width
 
@@ -213,7 +215,10 @@ def test_the_full_width_check_is_the_default_on_random_layouts():
     assert full_width("--run", str(POLICY)) is False  # the thesis scene, with the head
     assert full_width("--run", str(POLICY), "--arrival-head", "none") is False
     assert full_width("--run", str(POLICY), "--layout", "heldout") is True
-    assert full_width("--run", str(POLICY), "--layout", "heldout", "--perception", "sim") is True
+    assert full_width("--run", str(POLICY), "--layout", "heldout", "--perception", "sim",
+                      "--arrival-head", "none") is True
+    # with the simulator's depth the board plane decides there (--arrival-head auto: depth)
+    assert full_width("--run", str(POLICY), "--layout", "heldout", "--perception", "sim") is False
     assert full_width("--run", str(POLICY), "--host", "192.168.10.1", "--dry-run") is False
     assert full_width("--reach-full-width", "off") is False
     assert full_width("--run", str(POLICY), "--reach-full-width") is True
@@ -236,6 +241,39 @@ def test_the_depth_models_calibrated_range_is_the_default_threshold():
     assert fly_tello.reach_rule(given, depth=depth).max_distance == 0.5
     offset = fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.2"])
     assert fly_tello.reach_rule(offset, depth=depth).max_distance == 1.0
+
+
+def test_the_board_plane_head_flies_any_board_with_the_final_approach():
+    """--arrival-head depth: no weights file; the env gets a BoardPlaneOffset (reading the
+    rule's per-layout board width) and, with --final-approach, the approach."""
+    from torchrl_causal.envs import BoardPlaneOffset, FinalApproach
+    from torchrl_causal.envs.layouts import RandomLayoutGenerator
+
+    args = fly_tello.parse_args(["--run", str(POLICY), "--layout", "heldout", "--perception",
+                                 "sim", "--arrival-head", "depth", "--reach-offset", "0.2",
+                                 "--final-approach", "0.4", "--dry-run"])
+    assert args.arrival_head == "depth" and args.final_approach == 0.4
+    assert args.reach_rule.full_width is False  # the head decides, as on the thesis board
+    # the default on random layouts with the simulator's depth, where it was measured
+    auto = fly_tello.parse_args(["--run", str(POLICY), "--layout", "heldout",
+                                 "--perception", "sim"])
+    assert auto.arrival_head == "depth" and auto.final_approach == fly_tello.FINAL_APPROACH_RADIUS
+    assert auto.reach_rule.max_goal_offset == fly_tello.PLANE_REACH_OFFSET == 0.2
+    for other in (["--layout", "heldout"], ["--perception", "sim"]):  # MonoDepth; thesis board
+        assert fly_tello.parse_args(["--run", str(POLICY), *other]).arrival_head != "depth"
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(POLICY / "config.yaml")
+    lay = RandomLayoutGenerator("heldout", seed=0).layout(3)
+    from torchrl_causal.perception.goal import SimGoalDetector
+
+    env, _ = fly_tello.make_tello_env(args, cfg, None, SimGoalDetector(),
+                                      lambda p: torch.ones(p.shape[:3]), None, layout=lay)
+    try:
+        assert isinstance(env.arrival_head, BoardPlaneOffset)
+        assert isinstance(env.final_approach, FinalApproach) and env.final_approach.radius == 0.4
+    finally:
+        env.close()
 
 
 def test_reach_offset_takes_the_emulated_layouts_board():
@@ -335,7 +373,7 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
 
 def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():
     """fly_tello gives TelloEnv each emulated layout's arena with the start pose in it
-    (``layout_fence``; before, the first layout's fence and none at all for a turned start):
+    (``Layout.fence``; before, the first layout's fence and none at all for a turned start):
     the env refuses exactly the moves that leave that layout's arena, and EgoMap's
     ``geofence='env'`` over it holds the fence it holds over the DroneNavEnv of that layout."""
     import math
@@ -361,7 +399,7 @@ def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():
     for _ in range(4):
         sim.reset()
         lay = sim.base_env.layout
-        fence, origin, ceiling = fly_tello.layout_fence(lay)
+        fence, origin, ceiling = lay.fence()
         tello.set_geofence(fence, origin=origin, max_height=ceiling)
         real.reset()
         assert torch.allclose(real.transform._state["fence"], sim.transform._state["fence"])

@@ -43,6 +43,7 @@ _LAZY = {
     "board_face_image": "scene",
     "ReachRule": "reach",
     "FinalApproach": "reach",
+    "BoardPlaneOffset": "reach",
     "KinematicExecutor": "control",
     "TELLO_MOVE_NOISE": "control",
     "PhysicsExecutor": "control",

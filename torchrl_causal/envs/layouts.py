@@ -202,6 +202,22 @@ class Layout:
         x, y, z = (float(v) for v in pos[:3])
         return xmin <= x <= xmax and ymin <= y <= ymax and z <= self.height
 
+    def fence(self) -> tuple[tuple[float, float, float, float], tuple[float, float, float], float]:
+        """The flight volume as a geofence: ``(arena, start, ceiling)`` with ``arena`` the
+        rectangle ``(x_min, y_min, x_max, y_max)`` of the world frame, ``start`` the take-off
+        pose ``(x, y, yaw_deg)`` in it and ``ceiling`` the volume's height: what
+        ``TelloEnv(geofence=, geofence_origin=, max_height=)`` and ``EgoMap(geofence="env")``
+        take (a drone's own frame starts at the take-off pose, possibly turned).
+
+        Example:
+            >>> from torchrl_causal.envs.layouts import thesis_layout
+            >>> thesis_layout().fence()
+            ((-2.0, -3.0, 5.0, 3.0), (0.0, 0.0, 0.0), 3.0)
+        """
+        x0, y0, _ = (float(v) for v in self.start_pos)
+        return (tuple(float(v) for v in self.arena), (x0, y0, float(self.start_yaw_deg)),
+                float(self.height))
+
     def goal_point(self) -> np.ndarray:
         """Where the drone's centre must get to (within ``reach_radius``)."""
         c = np.asarray(self.goal_center, dtype=np.float64)

@@ -50,7 +50,85 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["ReachRule", "FinalApproach", "calibrate_reach_distance", "goal_point_offset"]
+__all__ = ["ReachRule", "FinalApproach", "BoardPlaneOffset", "calibrate_reach_distance",
+           "goal_point_offset"]
+
+
+def _board_line(depth, box, hfov_deg: float, board_width: float | None,
+                max_residual: float | None = None):
+    """The board's centre and normal (towards the camera) in the camera's horizontal plane
+    (``(x right, z forward)``, m), and how many of its side edges are in view, from the
+    per-column median z-depth inside ``box``; None when too few columns are valid or the
+    board is seen edge-on (:func:`goal_point_offset`).
+
+    With ``max_residual`` (m) two checks more: None when more than a fifth of the columns'
+    depths lie farther than that from their fitted line (something in front of the board,
+    or not a board; the line is refitted to the others: a board seen at an angle leaves
+    background in the thin columns at its far end), and a side of the box is not taken for the board's edge when the image just
+    beyond it is nearer than the board there (an obstacle hides the board's end)."""
+    d_ = np.asarray(depth, dtype=np.float64)
+    H, W = d_.shape
+    x0, y0, x1, y1 = (int(round(float(v))) for v in box)
+    x0, x1 = max(0, x0), min(W, x1)
+    y0, y1 = max(0, y0), min(H, y1)
+    if x1 - x0 < 3 or y1 - y0 < 1:
+        return None
+    f = (W / 2) / math.tan(math.radians(hfov_deg) / 2)
+    cols = np.arange(x0, x1)
+    block = d_[y0:y1, x0:x1]
+    block = np.where(np.isfinite(block) & (block > 0), block, np.nan)
+    with np.errstate(all="ignore"):
+        z = np.nanmedian(block, axis=0) if np.isfinite(block).any() else np.full(len(cols), np.nan)
+    ok = np.isfinite(z)
+    if ok.sum() < 3:
+        return None
+    cols, z = cols[ok], z[ok]
+    pts = np.stack([z * (cols + 0.5 - W / 2) / f, z], 1)
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c)
+    if max_residual is not None:  # the columns off the line: at most a fifth, then refit
+        keep = np.abs((pts - c) @ vt[1]) <= max_residual
+        if keep.mean() < 0.8 or keep.sum() < 3:
+            return None
+        c = pts[keep].mean(0)
+        _, _, vt = np.linalg.svd(pts[keep] - c)
+    along = vt[0] if vt[0][0] >= 0 else -vt[0]  # along the board, towards the image's right
+    normal = np.array([-along[1], along[0]])
+    if normal[1] > 0:  # towards the camera
+        normal = -normal
+
+    def on_board(col):  # where the ray through a pixel column meets the board's line
+        ray = np.array([(col - W / 2) / f, 1.0])
+        t, _ = np.linalg.solve(np.stack([ray, -along], 1), c)
+        return t * ray
+
+    left_in, right_in = x0 > 0, x1 < W
+    if max_residual is not None:  # an edge with something nearer just beyond it is hidden
+        def hidden(lo, hi, col):
+            out = d_[y0:y1, max(0, lo):min(W, hi)]
+            out = out[np.isfinite(out) & (out > 0)]
+            if out.size == 0:
+                return False
+            try:
+                board_z = float(on_board(col)[1])
+            except np.linalg.LinAlgError:
+                return False
+            return float(np.median(out)) < board_z - 2 * max_residual - 0.02
+
+        left_in = left_in and not hidden(x0 - 3, x0, x0)
+        right_in = right_in and not hidden(x1, x1 + 3, x1)
+    try:
+        if left_in and right_in:
+            centre, edges = (on_board(x0) + on_board(x1)) / 2, 2
+        elif left_in and board_width is not None:
+            centre, edges = on_board(x0) + along * board_width / 2, 1
+        elif right_in and board_width is not None:
+            centre, edges = on_board(x1) - along * board_width / 2, 1
+        else:
+            centre, edges = on_board((x0 + x1) / 2), 0
+    except np.linalg.LinAlgError:  # a ray along the board's line: seen edge-on
+        return None
+    return centre, normal, edges
 
 
 def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.45,
@@ -100,49 +178,10 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
         >>> round(goal_point_offset(depth, (0, 0, 84, 84), 60.0, moved=(0.0, 0.25))[0], 3)
         0.0
     """
-    d_ = np.asarray(depth, dtype=np.float64)
-    H, W = d_.shape
-    x0, y0, x1, y1 = (int(round(float(v))) for v in box)
-    x0, x1 = max(0, x0), min(W, x1)
-    y0, y1 = max(0, y0), min(H, y1)
-    nan = (float("nan"), float("nan"))
-    if x1 - x0 < 3 or y1 - y0 < 1:
-        return nan
-    f = (W / 2) / math.tan(math.radians(hfov_deg) / 2)
-    cols = np.arange(x0, x1)
-    block = d_[y0:y1, x0:x1]
-    block = np.where(np.isfinite(block) & (block > 0), block, np.nan)
-    with np.errstate(all="ignore"):
-        z = np.nanmedian(block, axis=0) if np.isfinite(block).any() else np.full(len(cols), np.nan)
-    ok = np.isfinite(z)
-    if ok.sum() < 3:
-        return nan
-    cols, z = cols[ok], z[ok]
-    pts = np.stack([z * (cols + 0.5 - W / 2) / f, z], 1)
-    c = pts.mean(0)
-    _, _, vt = np.linalg.svd(pts - c)
-    along = vt[0] if vt[0][0] >= 0 else -vt[0]  # along the board, towards the image's right
-    normal = np.array([-along[1], along[0]])
-    if normal[1] > 0:  # towards the camera
-        normal = -normal
-
-    def on_board(col):  # where the ray through a pixel column meets the board's line
-        ray = np.array([(col - W / 2) / f, 1.0])
-        t, _ = np.linalg.solve(np.stack([ray, -along], 1), c)
-        return t * ray
-
-    left_in, right_in = x0 > 0, x1 < W
-    try:
-        if left_in and right_in:
-            centre = (on_board(x0) + on_board(x1)) / 2
-        elif left_in and board_width is not None:
-            centre = on_board(x0) + along * board_width / 2
-        elif right_in and board_width is not None:
-            centre = on_board(x1) - along * board_width / 2
-        else:
-            centre = on_board((x0 + x1) / 2)
-    except np.linalg.LinAlgError:  # a ray along the board's line: seen edge-on
-        return nan
+    line = _board_line(depth, box, hfov_deg, board_width)
+    if line is None:
+        return (float("nan"), float("nan"))
+    centre, normal, _ = line
     goal = np.append(centre + goal_standoff * normal, float(height_offset))
     end = np.array([0.0, -camera_offset, 0.0])
     mv = np.zeros(3)
@@ -153,6 +192,13 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
     offset = float(np.linalg.norm(goal - (start + t * seg)))
     facing = float(math.degrees(math.atan2(-normal[0], -normal[1]))) + 0.0  # no -0.0
     return offset, facing
+
+
+def _finite_arg(name, value, low, high):
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and low <= value <= high):
+        raise ValueError(f"BoardPlaneOffset.{name} must be a number in [{low}, {high}], "
+                         f"got {value!r}")
 
 
 def _finite(name, value, low=None, high=None, strict_low=False):
@@ -381,6 +427,118 @@ class FinalApproach:
         if big < 20.5:  # the SDK's go needs one axis beyond 20 cm: fly through the point
             move *= 21.0 / big
         return tuple(int(round(float(v))) for v in move)
+
+
+class BoardPlaneOffset:
+    """The depth map's board plane as an arrival head: ``(ahead, lateral)`` from the goal point.
+
+    :class:`~torchrl_causal.envs.TelloEnv` takes it as its ``arrival_head``
+    (``fly_tello.py --arrival-head depth``). It reads what :func:`goal_point_offset`
+    reads (the board's plane fitted to the depth inside the goal's box, its side
+    edges, the rule's ``board_width`` and ``goal_standoff``) but returns the drone's
+    place in the *board's* frame, as :class:`~torchrl_causal.perception.arrival.GoalOffsetEstimator`
+    does: ``ahead`` > 0 farther from the board than the goal point, ``lateral`` > 0 to
+    the right seen facing the board. So the head's machinery applies to any board the
+    depth map shows (random layouts' boards of any width, where the learned head was
+    not trained): the segment between two steps' estimates, both in the board's
+    frame, is the path the drone really flew, not the commanded move, and
+    :class:`FinalApproach` can fly the last leg.
+
+    Once the board fills the view (no side edge in view) one frame no longer shows
+    where along the board the drone is. With ``memory`` the lateral place is then
+    carried on from the last view with an edge by the drone's dead-reckoned moves
+    since (``pose``: the odometry ``(x, y, yaw)``, yaw in rad counter-clockwise),
+    turned into that view's board frame; the range to the board's plane is always
+    the current frame's. Without ``memory``, or ``max_age`` steps after the last
+    edge, the box centre's ray is taken (:func:`goal_point_offset`'s choice).
+
+    Two checks keep what is not the board's plane out: when more than a fifth of the
+    box's columns lie more than ``max_residual`` from their fitted line there is no
+    estimate (an obstacle in front of part of the board, a sliver of board at the
+    image's border; the line is refitted to the rest), and a side of
+    the box with something nearer just beyond it is not the board's edge (an obstacle
+    hides the board's end there).
+
+    A sliver of board (a box narrower than ``min_width`` of the image) and a board
+    seen nearly edge-on (its normal more than ``max_facing`` off the camera's axis) give
+    no estimate either: a few columns at a grazing angle fix neither the plane nor the
+    edge (the drone beside the board, in its plane, read as in front of it).
+
+    Args:
+        memory: carry the lateral place over views without an edge.
+        max_age: how many views without an edge a remembered lateral place lasts.
+        max_residual: how far (m) a column's depth may lie from the fitted line
+            (0.001-1; default 0.03, for a depth map as exact as the simulator's).
+        min_width: the narrowest box (a fraction of the image's width, 0-1) read.
+        max_facing: the largest angle (deg, 1-90) between the camera's axis and the
+            board's normal read.
+
+    Example:
+        >>> import numpy as np
+        >>> head = BoardPlaneOffset()
+        >>> depth = np.full((84, 84), 1.0)          # a 1 m board, square on, 1 m ahead
+        >>> box = (20, 0, 64, 84)                   # ... both of its side edges in view
+        >>> ahead, lat = head(depth, box, 60.0, board_width=1.0, goal_standoff=0.45,
+        ...                   pose=(0.0, 0.0, 0.0))
+        >>> round(float(ahead), 3), round(float(lat), 3)   # 1 + 0.125 - 0.45 m in front
+        (0.675, 0.0)
+        >>> # 0.5 m forward and 0.2 m to the right: the board now fills the view
+        >>> ahead, lat = head(np.full((84, 84), 0.5), (0, 0, 84, 84), 60.0, board_width=1.0,
+        ...                   goal_standoff=0.45, pose=(0.5, -0.2, 0.0))
+        >>> round(float(ahead), 3), round(float(lat), 3)   # the lateral place remembered
+        (0.175, 0.2)
+    """
+
+    def __init__(self, memory: bool = True, max_age: int = 8, max_residual: float = 0.03,
+                 min_width: float = 0.25, max_facing: float = 70.0):
+        _finite_arg("max_residual", max_residual, 0.001, 1.0)
+        _finite_arg("min_width", min_width, 0.0, 1.0)
+        _finite_arg("max_facing", max_facing, 1.0, 90.0)
+        if not isinstance(memory, bool):
+            raise ValueError(f"BoardPlaneOffset.memory must be a bool, got {memory!r}")
+        if not (isinstance(max_age, int) and not isinstance(max_age, bool) and max_age >= 0):
+            raise ValueError(f"BoardPlaneOffset.max_age must be an int >= 0, got {max_age!r}")
+        self.memory = memory
+        self.max_age = max_age
+        self.max_residual = float(max_residual)
+        self.min_width = float(min_width)
+        self.max_facing = float(max_facing)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets the last view with an edge (a new episode)."""
+        self._fix = None  # (odometry xy, lateral, the board's side direction in odometry)
+        self._age = 0
+
+    def __call__(self, depth, box, hfov_deg: float, *, board_width: float = 1.0,
+                 goal_standoff: float = 0.45, camera_offset: float = 0.125, pose=None):
+        """``np.array([ahead, lateral])`` (m), or None (too few valid depth columns in
+        ``box``, or the board seen edge-on)."""
+        width = np.asarray(depth).shape[-1]
+        if float(box[2]) - float(box[0]) < self.min_width * width:
+            return None
+        line = _board_line(depth, box, hfov_deg, board_width, self.max_residual)
+        if line is None:
+            return None
+        centre, normal, edges = line
+        if abs(math.degrees(math.atan2(-normal[0], -normal[1]))) > self.max_facing:
+            return None
+        side = np.array([-normal[1], normal[0]])  # the drone's right, facing the board
+        v = np.array([0.0, -camera_offset]) - (centre + goal_standoff * normal)
+        ahead, lateral = float(v @ normal), float(v @ side)
+        if pose is None or not self.memory:
+            return np.array([ahead, lateral])
+        x, y, yaw = (float(p) for p in pose)
+        c, s = math.cos(yaw), math.sin(yaw)
+        # a camera-frame vector (right, forward) in the odometry frame
+        side_w = np.array([side[1] * c + side[0] * s, side[1] * s - side[0] * c])
+        if edges > 0:
+            self._fix, self._age = (np.array([x, y]), lateral, side_w), 0
+        elif self._fix is not None and self._age < self.max_age:
+            self._age += 1
+            xy0, lat0, side0 = self._fix
+            lateral = lat0 + float((np.array([x, y]) - xy0) @ side0)
+        return np.array([ahead, lateral])
 
 
 def calibrate_reach_distance(depth_estimator=None, *, poses: int = 200, seed: int = 0,

@@ -82,7 +82,7 @@ from ..perception.arrival import segment_distance
 from ..perception.goal import GoalDetector, GoalMeter, horizontal_fov
 from ..perception.video_path import crop_resize
 from ..schema import ACTION_NAMES
-from .reach import FinalApproach, ReachRule
+from .reach import BoardPlaneOffset, FinalApproach, ReachRule
 from .rewards import StepOutcome, make_reward
 from .specs import navigation_specs
 
@@ -215,7 +215,10 @@ class TelloEnv(EnvBase):
             is then read from the camera frame by this learned head (3-D with the
             height sensor's difference, to the segment since the last step's
             estimate) instead of the depth map's board plane; needs a ``reach_rule``
-            with ``max_goal_offset`` (docs/tello.rst, "A learned arrival head").
+            with ``max_goal_offset`` (docs/tello.rst, "A learned arrival head"). A
+            :class:`~torchrl_causal.envs.reach.BoardPlaneOffset` reads the same offset
+            from the depth map's board plane instead (any board the rule's
+            ``board_width`` describes; docs/tello.rst, "The board plane as the head").
         arrival_fusion: with ``arrival_head``, average the head's ``(ahead, lateral)``
             over consecutive asked steps whose moves did not move the drone across the
             floor (turns, climbs, refused moves): the drone is where it was, so the
@@ -682,6 +685,8 @@ class TelloEnv(EnvBase):
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
         if self.final_approach is not None:
             self.final_approach.reset()
+        if isinstance(getattr(self, "arrival_head", None), BoardPlaneOffset):
+            self.arrival_head.reset()
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
                      frame=None, distance: float | None = None) -> float | None:
@@ -714,7 +719,10 @@ class TelloEnv(EnvBase):
             sighted, self._prev_sighted = self._prev_sighted, in_sight and (
                 distance is None or distance <= rule.max_distance)
             held = held or (climbed and sighted)
-            if frame is None or (not in_sight and not held) or (
+            plane = isinstance(self.arrival_head, BoardPlaneOffset)
+            if plane:  # the depth map's board plane: the box of this frame, none held
+                held = False
+            if (frame is None and not plane) or (not in_sight and not held) or (
                     in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
             nearest = abs(dz)
@@ -722,8 +730,15 @@ class TelloEnv(EnvBase):
                 nearest = 0.0 if dz_prev * dz <= 0 else min(abs(dz_prev), abs(dz))
             if nearest > rule.max_goal_offset:  # the height sensor alone puts it outside
                 return nearest
-            look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
-                              float).reshape(-1)[:2]
+            if plane:
+                look = self.arrival_head(
+                    depth.cpu().numpy(), box, self.hfov_deg, board_width=rule.board_width,
+                    goal_standoff=rule.goal_standoff, pose=(*self._world, self._yaw))
+                if look is None:
+                    return None
+            else:
+                look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
+                                  float).reshape(-1)[:2]
             if self.final_approach is not None:
                 self.final_approach.record(self._world, look)
             stayed = prev is not None and not any(self._last_move[:2])  # no move across

@@ -325,10 +325,8 @@ class EgoMap(Transform):
             raise ValueError("EgoMap geofence='env' reads the arena of one DroneNavEnv (or the "
                              "geofence of a TelloEnv) under it, not a batched env; give "
                              "(x_min, y_min, x_max, y_max) instead")
-        x0, y0, _ = (float(v) for v in layout.start_pos)
-        out[0] = torch.tensor([x0, y0, math.radians(float(layout.start_yaw_deg)),
-                               *(float(v) for v in layout.arena), float(layout.height)],
-                              device=device)
+        arena, (x0, y0, yaw0), ceiling = layout.fence()
+        out[0] = torch.tensor([x0, y0, math.radians(yaw0), *arena, ceiling], device=device)
         return out
 
     def _fence_mask(self, st, idx, altitude):
