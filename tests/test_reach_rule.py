@@ -344,3 +344,36 @@ def test_board_plane_head_reads_no_sliver_and_no_board_seen_edge_on():
                                                            60.0) is not None
     with pytest.raises(ValueError, match="BoardPlaneOffset.min_width"):
         BoardPlaneOffset(min_width=2.0)
+
+
+def test_tello_env_lets_the_board_plane_head_remember_an_edge_seen_above_the_goal():
+    """A view with the board's edge, taken where the height sensor alone puts the drone
+    outside the offset (the head's estimate is not used there), still leaves its lateral
+    place for the next view that shows no edge: TelloEnv reads every frame in range."""
+    from torchrl_causal.envs import BoardPlaneOffset
+    from torchrl_causal.perception.goal import SimGoalDetector
+
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.2, goal_height=1.0,
+                     board_width=1.0, goal_standoff=0.45)
+    env = TelloEnv(dry_run=True, detector=SimGoalDetector(), verbose=False,
+                   depth_estimator=lambda p: torch.ones(p.shape[:3]), reach_rule=rule,
+                   arrival_head=BoardPlaneOffset())
+    try:
+        env._forget_arrival()
+        env._world, env._yaw, env._last_move = np.zeros(2), 0.0, (0.0, 0.0, 0.0)
+        # 1 m from the board, its left edge at column 20: the drone 0.3 m to the goal's
+        # right... and 0.3 m above the goal height: the height alone says "outside"
+        edge = torch.full((84, 84), 1.0)
+        off = env._goal_offset(True, edge, [20.0, 0.0, 84.0, 84.0], 1.3, None, 1.0)
+        assert off == pytest.approx(0.3)
+        # a descent and 0.55 m forward (dead-reckoned), the board now fills the view
+        env._world, env._last_move = np.array([0.55, 0.0]), (0.0, 0.0, -0.25)
+        near = torch.full((84, 84), 0.45)
+        env._goal_offset(True, near, [0.0, 0.0, 84.0, 84.0], 1.05, None, 0.45)
+        lateral = float(env._prev_offset[1])
+        f = 42 / math.tan(math.radians(env.hfov_deg / 2))
+        x_edge = (20 - 42) / f * 1.0  # the edge's x at 1 m; the board's centre 0.5 m right
+        assert lateral == pytest.approx(-(x_edge + 0.5), abs=1e-6)
+        assert abs(lateral) > 0.1  # the box centre's ray alone would read about 0
+    finally:
+        env.close()

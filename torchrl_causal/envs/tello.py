@@ -725,15 +725,16 @@ class TelloEnv(EnvBase):
             if (frame is None and not plane) or (not in_sight and not held) or (
                     in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
+            if plane:  # read every frame in range: its memory keeps the last view's edge
+                look = self.arrival_head(
+                    depth.cpu().numpy(), box, self.hfov_deg, board_width=rule.board_width,
+                    goal_standoff=rule.goal_standoff, pose=(*self._world, self._yaw))
             nearest = abs(dz)
             if climbed:
                 nearest = 0.0 if dz_prev * dz <= 0 else min(abs(dz_prev), abs(dz))
             if nearest > rule.max_goal_offset:  # the height sensor alone puts it outside
                 return nearest
             if plane:
-                look = self.arrival_head(
-                    depth.cpu().numpy(), box, self.hfov_deg, board_width=rule.board_width,
-                    goal_standoff=rule.goal_standoff, pose=(*self._world, self._yaw))
                 if look is None:
                     return None
             else:
