@@ -99,6 +99,20 @@ def _view(env, x, y, yaw_offset_deg=0.0):
     return obs["depth"].numpy(), obs["goal_box"].tolist()
 
 
+def _random_views(env, rng, n, max_deg, radii):
+    """``n`` views ``(x, y, depth, box)`` from around the board: up to ``max_deg`` off its
+    normal, ``radii = (low, high)`` m from its centre, looking at it within 10 deg."""
+    lay = env.layout
+    gc, nrm = np.asarray(lay.goal_center), lay.goal_normal()
+    for _ in range(n):
+        phi = math.radians(rng.uniform(-max_deg, max_deg))
+        r = rng.uniform(*radii)
+        base = math.atan2(nrm[1], nrm[0]) + phi
+        x, y = gc[0] + r * math.cos(base), gc[1] + r * math.sin(base)
+        depth, box = _view(env, x, y, rng.uniform(-10, 10))
+        yield x, y, depth, box
+
+
 def test_goal_offset_reads_where_the_goal_point_is_on_real_renders():
     """Square on, seen at an angle, with the board's edges in view or filling it:
     the estimate of the drone's distance to the goal point is within 5 cm of the truth
@@ -118,12 +132,7 @@ def test_goal_offset_reads_where_the_goal_point_is_on_real_renders():
         old = ReachRule()
         rng = np.random.default_rng(0)
         errors, fooled, kept_off = [], 0, 0
-        for _ in range(24):
-            phi = math.radians(rng.uniform(-60, 60))
-            r = rng.uniform(0.3, 0.9)
-            base = math.atan2(n[1], n[0]) + phi
-            x, y = gc[0] + r * math.cos(base), gc[1] + r * math.sin(base)
-            depth, box = _view(env, x, y, rng.uniform(-10, 10))
+        for x, y, depth, box in _random_views(env, rng, 24, 60, (0.3, 0.9)):
             est, facing = goal_point_offset(depth, box, env.hfov_deg,
                                             goal_standoff=lay.goal_standoff,
                                             board_width=lay.goal_size[0])
@@ -231,12 +240,7 @@ def test_board_plane_head_reads_the_drones_place_in_the_boards_frame_on_real_ren
         gp, gc, n = lay.goal_point(), np.asarray(lay.goal_center), lay.goal_normal()
         rng = np.random.default_rng(1)
         errors = []
-        for _ in range(16):
-            phi = math.radians(rng.uniform(-45, 45))
-            r = rng.uniform(0.9, 1.4)
-            base = math.atan2(n[1], n[0]) + phi
-            x, y = gc[0] + r * math.cos(base), gc[1] + r * math.sin(base)
-            depth, box = _view(env, x, y, rng.uniform(-10, 10))
+        for x, y, depth, box in _random_views(env, rng, 16, 45, (0.9, 1.4)):
             if box[0] > 0 or box[2] < 84:
                 est = BoardPlaneOffset()(depth, box, env.hfov_deg, **kw)
                 assert est is not None

@@ -29,6 +29,11 @@ step, from what it measures:
   tell the goal point from a place beside it when the board is seen at an angle
   (random layouts turn it up to 30 deg), this can.
 
+:class:`BoardPlaneOffset` reads that estimate as an arrival head does, in the
+board's frame, so that :class:`~torchrl_causal.envs.TelloEnv` can take the
+segment between two steps' estimates and fly a :class:`FinalApproach` on any board
+the depth map shows (docs/tello.rst, "The board plane as the head").
+
 The thresholds were chosen by measurement (docs/tello.rst, "An arrival rule
 that agrees with the simulator"). ``max_distance`` depends on the depth model:
 :func:`calibrate_reach_distance` finds a model's own threshold (a pose sweep at
