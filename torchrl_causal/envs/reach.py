@@ -199,14 +199,7 @@ def goal_point_offset(depth, box, hfov_deg: float, *, goal_standoff: float = 0.4
     return offset, facing
 
 
-def _finite_arg(name, value, low, high):
-    if not (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value) and low <= value <= high):
-        raise ValueError(f"BoardPlaneOffset.{name} must be a number in [{low}, {high}], "
-                         f"got {value!r}")
-
-
-def _finite(name, value, low=None, high=None, strict_low=False):
+def _finite(name, value, low=None, high=None, strict_low=False, owner="ReachRule"):
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if ok and low is not None:
         ok = value > low if strict_low else value >= low
@@ -215,7 +208,7 @@ def _finite(name, value, low=None, high=None, strict_low=False):
     if not ok:
         rng = f" in {'(' if strict_low else '['}{low}, {high}]" if high is not None else (
             f" {'>' if strict_low else '>='} {low}" if low is not None else "")
-        raise ValueError(f"ReachRule.{name} must be a finite number{rng}, got {value!r}")
+        raise ValueError(f"{owner}.{name} must be a finite number{rng}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -496,9 +489,9 @@ class BoardPlaneOffset:
 
     def __init__(self, memory: bool = True, max_age: int = 8, max_residual: float = 0.03,
                  min_width: float = 0.25, max_facing: float = 70.0):
-        _finite_arg("max_residual", max_residual, 0.001, 1.0)
-        _finite_arg("min_width", min_width, 0.0, 1.0)
-        _finite_arg("max_facing", max_facing, 1.0, 90.0)
+        _finite("max_residual", max_residual, 0.001, 1.0, owner="BoardPlaneOffset")
+        _finite("min_width", min_width, 0.0, 1.0, owner="BoardPlaneOffset")
+        _finite("max_facing", max_facing, 1.0, 90.0, owner="BoardPlaneOffset")
         if not isinstance(memory, bool):
             raise ValueError(f"BoardPlaneOffset.memory must be a bool, got {memory!r}")
         if not (isinstance(max_age, int) and not isinstance(max_age, bool) and max_age >= 0):

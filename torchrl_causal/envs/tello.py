@@ -395,6 +395,7 @@ class TelloEnv(EnvBase):
         if not isinstance(arrival_fusion, bool):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
+        self._plane = isinstance(arrival_head, BoardPlaneOffset)  # read from depth, not frames
         self.arrival_fusion = arrival_fusion
         self.final_approach = final_approach
         self.approaches = 0
@@ -685,7 +686,7 @@ class TelloEnv(EnvBase):
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
         if self.final_approach is not None:
             self.final_approach.reset()
-        if isinstance(getattr(self, "arrival_head", None), BoardPlaneOffset):
+        if getattr(self, "_plane", False):
             self.arrival_head.reset()
 
     def _goal_offset(self, in_sight: bool, depth, box, altitude: float,
@@ -719,7 +720,7 @@ class TelloEnv(EnvBase):
             sighted, self._prev_sighted = self._prev_sighted, in_sight and (
                 distance is None or distance <= rule.max_distance)
             held = held or (climbed and sighted)
-            plane = isinstance(self.arrival_head, BoardPlaneOffset)
+            plane = self._plane
             if plane:  # the depth map's board plane: the box of this frame, none held
                 held = False
             if (frame is None and not plane) or (not in_sight and not held) or (
