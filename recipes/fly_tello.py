@@ -136,6 +136,10 @@ def parse_args(argv=None):
     p.add_argument("--board-width", type=float, default=None,
                    help="the board's width (m) for --reach-offset (default: the emulated "
                         "layout's; 1.0 on a real drone, the field guide's board)")
+    p.add_argument("--goal-size", type=float, nargs=2, default=None, metavar=("W", "H"),
+                   help="the emulator's random layouts: every board of this size (m), e.g. "
+                        "1.0 0.8, the field guide's printed board (default: drawn, 0.7-1.2 x "
+                        "0.6-0.9; the layouts then differ from the drawn-size ones)")
     p.add_argument("--goal-standoff", type=float, default=None,
                    help="the goal point in front of the board's face (m) for --reach-offset "
                         "(default: the emulated layout's; 0.45 on a real drone)")
@@ -192,6 +196,13 @@ def parse_args(argv=None):
     if a.host is not None and a.video_size != p.get_default("video_size"):
         p.error(f"--video-size {a.video_size}: a real Tello streams 960x720; the option is "
                 "the emulator's")
+    if a.goal_size is not None:
+        if a.host is not None:
+            p.error(f"--goal-size {a.goal_size[0]:g} {a.goal_size[1]:g}: a real drone flies "
+                    "to the board in the room; the option is the emulator's")
+        if not all(0.3 <= v <= 3.0 for v in a.goal_size):
+            p.error(f"--goal-size must be two sizes in 0.3-3.0 m, got "
+                    f"{a.goal_size[0]:g} {a.goal_size[1]:g}")
     if a.run is None:  # the shipped generalist
         from torchrl_causal.pretrained import policy_dir
 
@@ -204,6 +215,9 @@ def parse_args(argv=None):
         # a second flight would add its rows to the first's and replace its video
         p.error(f"--out {a.out} holds a recorded flight (episodes.csv): give another --out, "
                 "or --overwrite to replace it")
+    if a.goal_size is not None and _emulated_layout(a) == "thesis":
+        p.error("--goal-size applies to the emulator's random layouts (--layout heldout, "
+                "train or val); the thesis scene's board is 1.0 x 0.8 m")
     if a.perception not in PERCEPTIONS and ":" not in a.perception:
         p.error(f"--perception must be one of {', '.join(PERCEPTIONS)} or module:factory, "
                 f"got {a.perception!r}")
@@ -283,6 +297,19 @@ HEAD_REACH_OFFSET = 0.15
 #: ``--reach-offset`` of ``--arrival-head auto`` where it reads the board plane: the goal
 #: sphere's own radius (the simulator's depth; docs/tello.rst, "The board plane as the head").
 PLANE_REACH_OFFSET = 0.2
+
+
+def emulated_scene(args, cfg) -> tuple[str, dict]:
+    """The emulator's scene name (``--layout``, else the run's) and its ``DroneNavEnv``
+    layout options, with ``--goal-size``'s board on random layouts (parse_args refuses it
+    on the thesis scene)."""
+    import recipe_utils as ru
+
+    scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+    opts = dict(ru.SCENES[scene])
+    if args.goal_size is not None:
+        opts["goal_size"] = tuple(args.goal_size)
+    return scene, opts
 
 
 def _emulated_layout(args) -> str | None:
@@ -572,9 +599,10 @@ def main(argv=None) -> dict:
     else:
         from torchrl_causal.envs import TelloEmulator
 
-        scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+        scene, layout_opts = emulated_scene(args, cfg)
         summary["layout"] = scene
-        layout_opts = train_recipe.ru.SCENES[scene]
+        if args.goal_size is not None:
+            summary["goal_size"] = list(args.goal_size)
         noise = NOISE if args.noise else {}
         summary["seed"] = seed
         with TelloEmulator(env_options=dict(layout_opts, seed=seed, **noise),
@@ -623,6 +651,8 @@ def main(argv=None) -> dict:
             noise += ["features.options.perception=rgb"] + (
                 [f"features.ego_map.depth={args.map}"] if uses_map else [])
         scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+        if args.goal_size is not None:  # the emulator's layouts, boards and all
+            noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
         # the emulator's env draws the same layouts and noise from --seed, but it resets
         # once when it starts: DroneNavEnv's first episode is that reset's, dropped

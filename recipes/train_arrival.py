@@ -60,18 +60,21 @@ NEAR = {"ahead": (-0.35, 0.35), "lateral": 0.35}
 YAW_DEG = 30.0
 
 
-def render_mixture(n: int, seed: int, near_share: float, yaw_deg: float = YAW_DEG):
+def render_mixture(n: int, seed: int, near_share: float, yaw_deg: float = YAW_DEG,
+                   **rooms):
     """``n`` frames: ``near_share`` of them near the goal point (:data:`NEAR`), the rest
     over the whole range the head is asked in (``render_offset_views``' defaults), with
-    the camera turned up to ``yaw_deg`` off facing the board."""
+    the camera turned up to ``yaw_deg`` off facing the board; ``rooms``: the rooms
+    (``layout``, ``goal_size``) ``render_offset_views`` takes."""
     from torchrl_causal.perception.arrival import render_offset_views
 
     n_near = int(round(n * near_share))
     parts = []
     if n_near:
-        parts.append(render_offset_views(n_near, seed=seed, yaw_deg=yaw_deg, **NEAR))
+        parts.append(render_offset_views(n_near, seed=seed, yaw_deg=yaw_deg, **NEAR, **rooms))
     if n - n_near:
-        parts.append(render_offset_views(n - n_near, seed=seed + 500, yaw_deg=yaw_deg))
+        parts.append(render_offset_views(n - n_near, seed=seed + 500, yaw_deg=yaw_deg,
+                                         **rooms))
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
 
 
@@ -96,6 +99,16 @@ def main(argv=None) -> dict:
     p.add_argument("--data", type=Path, default=None,
                    help="an .npz to reuse the rendered frames from (written when absent): "
                         "xtr, ytr, xte, yte")
+    p.add_argument("--rooms", choices=("thesis", "random"), default="thesis",
+                   help="thesis: the thesis scene's board (the shipped head's frames); "
+                        "random: random layouts' rooms with a board of --goal-size, training "
+                        "frames from the training split and test frames from the held-out one")
+    p.add_argument("--goal-size", type=float, nargs=2, default=(1.0, 0.8),
+                   metavar=("W", "H"), help="--rooms random: the board (m; default the field "
+                                            "guide's printed 1.0 x 0.8 m board)")
+    p.add_argument("--compare", default=None,
+                   help="another head to measure on the same test frames ('shipped' or a "
+                        ".pt): its figures go beside the new head's")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
@@ -108,6 +121,12 @@ def main(argv=None) -> dict:
         raise ValueError(f"Invalid option --yaw-weight={a.yaw_weight}: expected >= 0")
     if not 0.0 < a.yaw_deg <= 90.0:
         raise ValueError(f"Invalid option --yaw-deg={a.yaw_deg}: expected 0-90")
+    if a.rooms == "random" and not all(0.3 <= v <= 3.0 for v in a.goal_size):
+        raise ValueError(f"Invalid option --goal-size={a.goal_size}: expected two sizes "
+                         f"in 0.3-3.0 m")
+    if a.compare not in (None, "shipped") and not Path(a.compare).is_file():
+        raise ValueError(f"Invalid option --compare={a.compare}: no such weights file "
+                         f"(or 'shipped')")
     if a.out.suffix != ".pt":
         raise ValueError(f"Invalid option --out={a.out}: expected a .pt file")
     if a.threads:
@@ -116,16 +135,23 @@ def main(argv=None) -> dict:
     if a.data is not None and a.data.is_file():
         d = np.load(a.data)
         xtr, ytr, xte, yte = d["xtr"], d["ytr"], d["xte"], d["yte"]
+        if "rooms" in d and str(d["rooms"]) != a.rooms:
+            raise ValueError(f"Invalid option --data={a.data}: its frames are of --rooms "
+                             f"{d['rooms']}, not {a.rooms}")
         if len(xtr) != a.train or len(xte) != a.test:
             raise ValueError(f"Invalid option --data={a.data}: it holds {len(xtr)} + "
                              f"{len(xte)} frames, not --train {a.train} + --test {a.test}")
     else:
         print(f"rendering {a.train} + {a.test} frames ...", file=sys.stderr, flush=True)
-        xtr, ytr = render_mixture(a.train, a.seed, a.near_share, a.yaw_deg)
-        xte, yte = render_mixture(a.test, a.seed + 1000, a.near_share, a.yaw_deg)
+        rooms = [{}, {}]  # thesis: the thesis board for both
+        if a.rooms == "random":
+            rooms = [{"layout": split, "goal_size": tuple(a.goal_size)}
+                     for split in ("train", "heldout")]
+        xtr, ytr = render_mixture(a.train, a.seed, a.near_share, a.yaw_deg, **rooms[0])
+        xte, yte = render_mixture(a.test, a.seed + 1000, a.near_share, a.yaw_deg, **rooms[1])
         if a.data is not None:
             a.data.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte)
+            np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte, rooms=a.rooms)
     t1 = time.time()
     est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, yaw_weight=a.yaw_weight,
                             progress=not a.no_progress)
@@ -133,9 +159,16 @@ def main(argv=None) -> dict:
     figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte),
                "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
                "near_share": a.near_share, "near": NEAR, "yaw_deg": a.yaw_deg,
-               "yaw_weight": a.yaw_weight,
+               "yaw_weight": a.yaw_weight, "rooms": a.rooms,
+               "goal_size": list(a.goal_size) if a.rooms == "random" else [1.0, 0.8],
                "render_s": round(t1 - t0, 1), "train_s": round(t2 - t1, 1),
                "command": "python recipes/train_arrival.py " + " ".join(argv or sys.argv[1:])}
+    if a.compare is not None:
+        from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS, GoalOffsetEstimator
+
+        other = GoalOffsetEstimator.load(DEFAULT_WEIGHTS if a.compare == "shipped"
+                                         else a.compare)
+        figures["compare"] = {"weights": a.compare, "test": evaluate(other, xte, yte)}
     est.meta = figures
     est.save(a.out)
     a.out.with_suffix(".json").write_text(json.dumps(figures, indent=1) + "\n")  # sidecar

@@ -15,3 +15,15 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 
 torch.set_num_threads(1)
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Puts torch back to one thread after every test: a test (or a library call it makes,
+    such as ultralytics' ``select_device``) that raises the count would otherwise leave the
+    worker oversubscribing the two cores for every test that follows on it."""
+    yield
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)

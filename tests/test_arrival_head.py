@@ -39,7 +39,6 @@ def test_a_short_training_beats_a_constant_guess(views):
     """40 epochs on 240 frames, measured on 60 frames of
     another seed, must read the range (ahead) far better than the training mean does."""
     (x, y), (xt, yt) = views
-    torch.set_num_threads(2)
     est = train_goal_offset(x, y, epochs=40, seed=0)
     pred = est(torch.as_tensor(xt)).numpy()
     mae = np.abs(pred[:, 0] - yt[:, 0]).mean()
@@ -228,3 +227,46 @@ def test_the_shipped_head_reads_the_range(views):
     pred = est(torch.as_tensor(xt)).numpy()
     assert np.abs(pred[:, 0] - yt[:, 0]).mean() < 0.08
     assert est.meta["test"]["n"] == 600 and "train_arrival.py" in est.meta["command"]
+
+
+def test_views_in_random_rooms_and_the_recipes_rooms_option(tmp_path):
+    """``layout="train"/"heldout"``: frames near a board of the given size in random rooms
+    (a new room every ``views_per_layout`` frames), seeded; ``train_arrival.py --rooms
+    random`` trains on the training split, measures on the held-out one and, with
+    ``--compare``, measures another head on the same test frames."""
+    import json
+    import sys
+    from pathlib import Path
+
+    kw = dict(seed=2, layout="heldout", views_per_layout=2, stream_sizes=((240, 320),))
+    x, y = render_offset_views(4, **kw)
+    x2, y2 = render_offset_views(4, **kw)
+    np.testing.assert_array_equal(x, x2)
+    np.testing.assert_array_equal(y, y2)
+    assert x.shape == (4, *INPUT_SIZE, 3) and x.std() > 10
+    assert (-0.42 <= y[:, 0]).all() and (y[:, 0] <= 0.8).all() and (abs(y[:, 1]) <= 0.6).all()
+    thesis, _ = render_offset_views(4, seed=2, stream_sizes=((240, 320),))
+    assert not np.array_equal(x, thesis)  # other rooms
+    with pytest.raises(ValueError, match="layout must be 'thesis', 'train' or 'heldout'"):
+        render_offset_views(1, seed=0, layout="val")
+    with pytest.raises(ValueError, match="views_per_layout"):
+        render_offset_views(1, seed=0, layout="train", views_per_layout=0)
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+    import train_arrival
+
+    out, data = tmp_path / "rooms.pt", tmp_path / "rooms.npz"
+    figures = train_arrival.main(["--out", str(out), "--train", "4", "--test", "4",
+                                  "--epochs", "1", "--no-progress", "--rooms", "random",
+                                  "--compare", "shipped", "--data", str(data)])
+    assert figures["rooms"] == "random" and figures["goal_size"] == [1.0, 0.8]
+    assert figures["compare"]["weights"] == "shipped" and figures["compare"]["test"]["n"] == 4
+    assert json.loads(out.with_suffix(".json").read_text())["compare"] == figures["compare"]
+    with pytest.raises(ValueError, match="its frames are of --rooms random, not thesis"):
+        train_arrival.main(["--out", str(out), "--train", "4", "--test", "4",
+                            "--data", str(data)])
+    for argv, message in ((["--compare", str(tmp_path / "none.pt")], "--compare=.*none.pt"),
+                          (["--rooms", "random", "--goal-size", "0.1", "0.8"],
+                           "--goal-size")):
+        with pytest.raises(ValueError, match=message):
+            train_arrival.main(["--out", str(out), *argv])

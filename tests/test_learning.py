@@ -9,6 +9,9 @@ more often than uniformly random flight does in the same number of frames
 (random flight reaches it in 0 of 100 episodes, ``benchmarks/random_flight.py``).
 The images are 48 x 48 to keep the run under 3 minutes on 2 CPU cores; the
 nine causal features carry the goal's direction and distance either way.
+Measured (2026-11-28): seeds 0 / 1 / 2 reach the goal in 75 / 81 / 34 training
+episodes of 4,000 frames; fewer frames are not enough for every seed (at 3,000,
+seed 3 reaches it in none), so the budget stays at 4,000.
 """
 
 from __future__ import annotations
@@ -56,7 +59,7 @@ def test_short_training_run_beats_random_flight(tmp_path):
         "loss.target_update_interval=250",
         "eval.interval_frames=0", "eval.episodes=0", "eval.final_episodes=0",
         "env.eval_layouts=[thesis]", "checkpoint.interval_frames=0",
-        "outputs.draw_cbns=false", "progress=false", "logger.backend=none",
+        "outputs.draw_cbns=false", "outputs.videos=0", "progress=false", "logger.backend=none",
     ]
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), HYDRA_FULL_ERROR="1")
     r = subprocess.run([sys.executable, str(TRAIN), *args], capture_output=True, text=True,

@@ -307,7 +307,7 @@ def test_recipe_transfers_and_selects_on_val(source_run, tmp_path):
         "env.max_steps=20", "loss.learning_starts=30", "loss.updates_per_frame=0.1",
         "loss.target_update_interval=2", "buffer.size=60", "buffer.batch_size=4",
         "checkpoint.interval_frames=0", "progress=false", "logger.backend=none",
-        "outputs.draw_cbns=false", "causal.k=1000"])
+        "outputs.draw_cbns=false", "outputs.videos=0", "causal.k=1000"])
     summary = train.train(cfg)
     eps = pd.read_csv(out / "episodes.csv")
     assert eps["gate_frac_consulted"].iloc[0] > 0  # active before any relearn (k=1000)

@@ -150,6 +150,10 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--arrival-head", "none", "--final-approach", "0.4"], "it needs the head"),
     (["--final-approach", "near"], "--final-approach must be a radius (m), 'auto' or 'none'"),
     (["--final-approach", "2.5"], "--final-approach must be a radius in [0.05, 1.0] m"),
+    (["--host", "192.168.10.1", "--goal-size", "1", "0.8", "--dry-run"],
+     "the option is the emulator's"),
+    (["--layout", "heldout", "--goal-size", "0.1", "0.8"], "--goal-size must be two sizes"),
+    (["--goal-size", "1", "0.8"], "--goal-size applies to the emulator's random layouts"),
 ])
 def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -292,7 +296,32 @@ def test_reach_offset_takes_the_emulated_layouts_board():
     assert fly_tello.reach_rule(fixed, layout=lay).board_width == 0.8  # the user's board wins
 
 
-def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
+def test_goal_size_gives_the_emulators_random_layouts_that_board():
+    """--goal-size: the emulator's random layouts (and DroneNavEnv's, for --compare-sim)
+    all hold a board of that size, e.g. the field guide's printed 1.0 x 0.8 m one."""
+    from omegaconf import OmegaConf
+
+    from torchrl_causal.envs import DroneNavEnv
+
+    cfg = OmegaConf.load(POLICY / "config.yaml")
+    args = fly_tello.parse_args(["--run", str(POLICY), "--layout", "heldout",
+                                 "--goal-size", "1.0", "0.8"])
+    scene, opts = fly_tello.emulated_scene(args, cfg)
+    assert scene == "heldout" and opts["goal_size"] == (1.0, 0.8)
+    env = DroneNavEnv(**opts, image_size=32, seed=0)
+    try:
+        for _ in range(3):
+            env.reset()
+            assert tuple(env.layout.goal_size) == (1.0, 0.8)
+            assert env.layout.name.startswith("heldout")
+    finally:
+        env.close()
+    _, drawn = fly_tello.emulated_scene(fly_tello.parse_args(["--run", str(POLICY), "--layout",
+                                                              "heldout"]), cfg)
+    assert "goal_size" not in drawn
+
+
+def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     """benchmarks/sim_to_real.py: one JSON object per seed and one pooled, with the targets;
     fly_tello's own lines stay off stdout."""
     from torchrl_causal.perception.yolo import DEFAULT_WEIGHTS
@@ -318,9 +347,14 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path):
     # DroneNavEnv's reference flew the emulator's two episodes, on the same RGB models
     assert one["dronenav_perception"] == "rgb" and one["dronenav_paired"]["episodes"] == 2
     # a candidate that is not there is named before anything flies
-    r = subprocess.run(bench + ["--depth-weights", str(tmp_path / "nope.pt")],
-                       capture_output=True, text=True, timeout=120, cwd=ROOT)
-    assert r.returncode == 2 and "--depth-weights" in r.stderr and "nope.pt" in r.stderr
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    with pytest.raises(SystemExit) as exit_:
+        sim_to_real.main(["--depth-weights", str(tmp_path / "nope.pt")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--depth-weights" in err and "nope.pt" in err
 
 
 @pytest.mark.parametrize("argv, expected", [([], "exact"), (["--map", "estimated"], "estimated")])

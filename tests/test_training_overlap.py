@@ -146,7 +146,7 @@ def test_recipe_option_collector_overlap(tmp_path):
         "loss.learning_starts=50", "loss.target_update_interval=10", "eval.interval_frames=0",
         "eval.final_episodes=0", "env.eval_layouts=[thesis]", "env.max_steps=40",
         "checkpoint.interval_frames=0", "logger.backend=none", "progress=false",
-        "outputs.draw_cbns=false", "threads=1"])
+        "outputs.draw_cbns=false", "outputs.videos=0", "threads=1"])
     assert tr.train.loop_config(cfg, tr.ru.VARIANTS["dqn_image"]).overlap is True
     summary = tr.train.train(cfg)
     assert summary["frames"] == 100 and summary["updates"] > 0

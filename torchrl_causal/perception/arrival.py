@@ -188,8 +188,9 @@ class GoalOffsetEstimator:
 
 def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 320)),
                         ahead=(-0.42, 0.8), lateral=0.6, height=0.2, yaw_deg=30.0,
-                        video_path_options: dict | None = None):
-    """``n`` frames near the thesis board through the Tello camera path, with labels.
+                        video_path_options: dict | None = None, layout: str = "thesis",
+                        goal_size=(1.0, 0.8), views_per_layout: int = 20):
+    """``n`` frames near a goal board through the Tello camera path, with labels.
 
     Args:
         n: how many frames (>= 1).
@@ -204,6 +205,14 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
         yaw_deg: the largest yaw off facing the board (deg).
         video_path_options: extra :class:`~torchrl_causal.perception.video_path.VideoPath`
             options.
+        layout: ``"thesis"`` (the thesis scene's board, the default) or a random-layout
+            split, ``"train"`` or ``"heldout"``: then a new room (walls, floor, light,
+            obstacles, the board's place and turn) every ``views_per_layout`` frames,
+            each with a board of ``goal_size``, and no pose within 0.3 m of an obstacle
+            or outside the room.
+        goal_size: random layouts only: the board's ``(width, height)`` (m); the default
+            is the field guide's printed 1.0 x 0.8 m board, the thesis board's size.
+        views_per_layout: random layouts only: frames per room (>= 1).
 
     Returns:
         ``(frames uint8 [n, 96, 128, 3], labels float32 [n, 4])``: ``ahead``,
@@ -216,28 +225,50 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
 
     if not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be an int >= 1, got {n!r}")
+    if layout not in ("thesis", "train", "heldout"):
+        raise ValueError(f"layout must be 'thesis', 'train' or 'heldout', got {layout!r}")
+    if not isinstance(views_per_layout, int) or views_per_layout < 1:
+        raise ValueError(f"views_per_layout must be an int >= 1, got {views_per_layout!r}")
+    thesis = layout == "thesis"
     sizes = [tuple(int(v) for v in s) for s in stream_sizes]
-    envs = {s: DroneNavEnv("thesis", image_size=s, seed=0) for s in sizes}
     paths = {s: VideoPath(stream_size=s, seed=seed + i, **(video_path_options or {}))
              for i, s in enumerate(sizes)}
     rng = np.random.default_rng(seed)
     frames, labels = [], []
+    envs: dict = {}
+
+    def free(lay, xy) -> bool:  # inside the room, clear of every obstacle's footprint
+        x0, y0, x1, y1 = lay.arena
+        return (x0 + 0.3 <= xy[0] <= x1 - 0.3 and y0 + 0.3 <= xy[1] <= y1 - 0.3
+                and all(float(o.footprint_distance(xy[0], xy[1])) >= 0.3
+                        for o in lay.obstacles))
+
     try:
-        for env in envs.values():
-            env.reset()
-        lay = envs[sizes[0]].layout
-        gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
-        normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
-        side = np.array([-normal[1], normal[0]])
-        facing = math.degrees(math.atan2(-normal[1], -normal[0]))
         for i in range(n):
+            if not envs or (not thesis and i % views_per_layout == 0):  # a (new) room
+                for env in envs.values():
+                    env.close()
+                kw = {} if thesis else dict(split=layout, goal_size=tuple(goal_size),
+                                            layout_index=int(rng.integers(0, 1_000_000)))
+                envs = {s: DroneNavEnv("thesis" if thesis else "random", image_size=s,
+                                       seed=0, **kw) for s in sizes}
+                for env in envs.values():
+                    env.reset()
+                lay = envs[sizes[0]].layout
+                gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
+                normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+                side = np.array([-normal[1], normal[0]])
+                facing = math.degrees(math.atan2(-normal[1], -normal[0]))
             size = sizes[i % len(sizes)]
             env = envs[size]
             qa = env.ids.qpos_adr
-            ahead_m, lat = rng.uniform(*ahead), rng.uniform(-lateral, lateral)
-            dz = rng.uniform(-height, height)
-            dyaw = rng.uniform(-yaw_deg, yaw_deg)
-            xy = gp[:2] + ahead_m * normal + lat * side
+            for _ in range(1000):  # the thesis room has no obstacle near its board
+                ahead_m, lat = rng.uniform(*ahead), rng.uniform(-lateral, lateral)
+                dz = rng.uniform(-height, height)
+                dyaw = rng.uniform(-yaw_deg, yaw_deg)
+                xy = gp[:2] + ahead_m * normal + lat * side
+                if thesis or free(lay, xy):
+                    break
             env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2] + dz)
             env.data.qpos[qa + 3:qa + 7] = _quat(facing + dyaw, rng.uniform(-3, 3),
                                                  rng.uniform(-3, 3))
