@@ -47,6 +47,14 @@ def _run(args, timeout=300):
     return r
 
 
+def _train_here(name, overrides):
+    """``recipes/train.py --config-name name overrides`` in this process: the same run
+    without an interpreter's start-up (about 10 s of CPU, which the suite's time counts)."""
+    import test_recipes as tr
+
+    return tr.train.train(tr._cfg(name, overrides))
+
+
 @pytest.mark.parametrize("variant", ["dqn_image", "cbn_defined", "cbn_p", "cbn_pn", "cbn_v2"])
 def test_variant_runs_end_to_end(variant, tmp_path):
     out = tmp_path / variant
@@ -59,10 +67,8 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     if variant == "dqn_image":  # the command line, as a user runs it
         r = _run(["--config-name", variant, *args])
         assert f"Plots: {out / 'plots'}" in r.stdout
-    else:  # the same run in this process (no interpreter start-up: the suite's time)
-        import test_recipes as tr
-
-        assert tr.train.train(tr._cfg(variant, args))["plots_dir"] == str(out / "plots")
+    else:  # the same run in this process
+        assert _train_here(variant, args)["plots_dir"] == str(out / "plots")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["variant"] == variant and summary["frames"] == 240
     eps = pd.read_csv(out / "episodes.csv")
@@ -122,8 +128,9 @@ def test_recipe_trains_on_several_envs(tmp_path):
     """``env.num_envs=2``: two drones in a SerialEnv per collector batch, the
     feature stack on the batch, every episode of both recorded."""
     out = tmp_path / "two"
-    _run(["--config-name", "cbn_v2", f"output_dir={out}", *TINY, "env.num_envs=2",
-          "collector.frames_per_batch=2", "env.eval_layouts=[thesis]", "outputs.draw_cbns=false"])
+    _train_here("cbn_v2", [f"output_dir={out}", *TINY, "env.num_envs=2",
+                           "collector.frames_per_batch=2", "env.eval_layouts=[thesis]",
+                           "outputs.draw_cbns=false"])
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 240 and summary["n_relearns"] >= 2
     eps = pd.read_csv(out / "episodes.csv")
@@ -265,7 +272,7 @@ def test_load_policy_reproduces_the_final_evaluation(tmp_path):
     from torchrl_causal.training import evaluate
 
     out = tmp_path / "run"
-    _run(["--config-name", "cbn_v2", f"output_dir={out}", *TINY, "seed=3"])
+    _train_here("cbn_v2", [f"output_dir={out}", *TINY, "seed=3"])
     summary = json.loads((out / "summary.json").read_text())
     assert (out / "explorer.pt").is_file()
     seed = 10_000_019 + 3 * 1009  # the final evaluation seeds scene i with 10_000_019 + seed * 1009 + i
