@@ -200,9 +200,12 @@ def parse_args(argv=None):
         if a.host is not None:
             p.error(f"--goal-size {a.goal_size[0]:g} {a.goal_size[1]:g}: a real drone flies "
                     "to the board in the room; the option is the emulator's")
-        if not all(0.3 <= v <= 3.0 for v in a.goal_size):
-            p.error(f"--goal-size must be two sizes in 0.3-3.0 m, got "
-                    f"{a.goal_size[0]:g} {a.goal_size[1]:g}")
+        from torchrl_causal.envs.layouts import check_goal_size
+
+        try:
+            check_goal_size(a.goal_size)
+        except ValueError as e:
+            p.error(f"--goal-size must be two sizes the layouts take: {e}")
     if a.run is None:  # the shipped generalist
         from torchrl_causal.pretrained import policy_dir
 
@@ -650,7 +653,7 @@ def main(argv=None) -> dict:
         if args.compare_perception == "rgb":
             noise += ["features.options.perception=rgb"] + (
                 [f"features.ego_map.depth={args.map}"] if uses_map else [])
-        scene = args.layout or ("thesis" if cfg.env.layout == "thesis" else "heldout")
+        scene = emulated_scene(args, cfg)[0]
         if args.goal_size is not None:  # the emulator's layouts, boards and all
             noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)

@@ -121,9 +121,13 @@ def main(argv=None) -> dict:
         raise ValueError(f"Invalid option --yaw-weight={a.yaw_weight}: expected >= 0")
     if not 0.0 < a.yaw_deg <= 90.0:
         raise ValueError(f"Invalid option --yaw-deg={a.yaw_deg}: expected 0-90")
-    if a.rooms == "random" and not all(0.3 <= v <= 3.0 for v in a.goal_size):
-        raise ValueError(f"Invalid option --goal-size={a.goal_size}: expected two sizes "
-                         f"in 0.3-3.0 m")
+    if a.rooms == "random":
+        from torchrl_causal.envs.layouts import check_goal_size
+
+        try:
+            check_goal_size(a.goal_size)
+        except ValueError as e:
+            raise ValueError(f"Invalid option --goal-size={a.goal_size}: {e}") from None
     if a.compare not in (None, "shipped") and not Path(a.compare).is_file():
         raise ValueError(f"Invalid option --compare={a.compare}: no such weights file "
                          f"(or 'shipped')")
