@@ -141,12 +141,17 @@ class Run(NamedTuple):
     seed: int
 
     def argv(self, base: list[str]) -> list[str]:
-        """``recipes/train.py`` arguments that run it alone (``output_dir`` set)."""
+        """``recipes/train.py`` arguments that run it alone (``output_dir`` set); the
+        run's own seed, k and folder win over the same keys in ``base`` (as the
+        multiruns' grid values do, :func:`sweep_command`)."""
         if self.group == "variants":
-            head = ["--config-name", str(self.value), f"seed={self.seed}"]
+            name, own = str(self.value), [f"seed={self.seed}"]
         else:
-            head = ["--config-name", "cbn_v2", f"seed={self.seed}", f"causal.k={self.value}"]
-        return [*head, f"output_dir={self.run_dir}", *base]
+            name, own = "cbn_v2", [f"seed={self.seed}", f"causal.k={self.value}"]
+        own.append(f"output_dir={self.run_dir}")
+        keys = {o.split("=", 1)[0] for o in own}
+        rest = [o for o in merge_overrides(base) if o.split("=", 1)[0].lstrip("+~") not in keys]
+        return ["--config-name", name, *own, *rest]
 
 
 GROUPS = ("variants", "k_sweep")

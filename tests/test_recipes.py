@@ -174,6 +174,11 @@ def test_reproduce_plan_covers_protocol(tmp_path):
     argv = run.argv(reproduce.MODES["full"]["overrides"])
     assert argv[:3] == ["--config-name", "cbn_pn", "seed=2"]
     assert "collector.total_episodes=700" in argv
+    # the run's own seed and k win over the same keys among the extra overrides
+    k_run = next(r for r in plan if r.group == "k_sweep" and r.value == 400 and r.seed == 1)
+    argv = k_run.argv(["causal.k=60", "seed=9", "env.max_steps=50"])
+    assert argv == ["--config-name", "cbn_v2", "seed=1", "causal.k=400",
+                    f"output_dir={k_run.run_dir}", "env.max_steps=50"]
     ks = sorted({r.value for r in plan if r.group == "k_sweep"})
     assert ks == [100, 400, 600]
     with pytest.raises(ValueError, match="--seeds=0"):

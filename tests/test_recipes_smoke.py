@@ -206,7 +206,7 @@ def test_resume_continues_exactly(tmp_path):
     # only evaluates -- the same final figures, no frame trained again
     episodes_before = (full / "episodes.csv").read_text()
     (full / "summary.json").unlink()
-    _run([*args, f"output_dir={full}", "checkpoint.resume=true"])
+    _train_here("cbn_v2", [*args[2:], f"output_dir={full}", "checkpoint.resume=true"])
     again = json.loads((full / "summary.json").read_text())
     assert again["final_eval"] == sa["final_eval"]
     assert again["frames"] == sa["frames"] and again["updates"] == sa["updates"]

@@ -76,13 +76,13 @@ def test_two_run_grid_through_submitit_local(tmp_path, capsys):
 @_needs("hydra_plugins.hydra_joblib_launcher")
 def test_two_run_grid_through_joblib(tmp_path):
     root = tmp_path / "grid"
+    # one multirun of two runs, side by side in joblib's two workers (the k sweep's own
+    # multirun goes through the same code; the Ray test below runs one)
     out = reproduce.main(["--launcher", "joblib", "--jobs", "2", "--variants", "dqn_image",
-                          "--seeds", "1", "--k", "200", "100", "--no-estimate",
+                          "cbn_v2", "--seeds", "1", "--k", "200", "--no-estimate",
                           "--root", str(root), *TINY])
-    runs = [root / "variants" / "dqn_image" / "seed_0", root / "k_sweep" / "k_100" / "seed_0"]
+    runs = [root / "variants" / v / "seed_0" for v in ("dqn_image", "cbn_v2")]
     _check_grid(root, runs, out)
-    # the sweep's k wins over TINY's causal.k=60
-    assert json.loads((runs[1] / "summary.json").read_text())["k"] == 100
     # --export: the records alone (no checkpoint or model) redraw the same tables
     rec = tmp_path / "records"
     reproduce.main(["--aggregate-only", "--root", str(root), "--export", str(rec)])
@@ -215,11 +215,13 @@ def test_two_run_grid_through_a_real_local_ray_instance(tmp_path, capsys):
 
     assert not ray.is_initialized()
     root = tmp_path / "grid"
-    args = ["--launcher", "ray", "--jobs", "2", "--variants", "cbn_v2", "dqn_image",
-            "--seeds", "1", "--k", "200", "--no-estimate", "--root", str(root), *TINY]
+    args = ["--launcher", "ray", "--jobs", "2", "--variants", "dqn_image",
+            "--seeds", "1", "--k", "200", "100", "--no-estimate", "--root", str(root), *TINY]
     out = reproduce.main(args)
-    runs = [root / "variants" / v / "seed_0" for v in ("cbn_v2", "dqn_image")]
+    runs = [root / "variants" / "dqn_image" / "seed_0", root / "k_sweep" / "k_100" / "seed_0"]
     _check_grid(root, runs, out)
+    # the sweep's k wins over TINY's causal.k=60
+    assert json.loads((runs[1] / "summary.json").read_text())["k"] == 100
     printed = capsys.readouterr().out
     assert "Ray: 2 runs on 2 CPUs, 1 node(s)" in printed
     assert printed.count("finished on ") == 2
