@@ -60,12 +60,18 @@ NEAR = {"ahead": (-0.35, 0.35), "lateral": 0.35}
 YAW_DEG = 30.0
 
 
+#: The far share's largest sideways offset and farthest offset along the board's normal
+#: from the goal point (m): ``render_offset_views``' defaults, the shipped head's frames.
+LATERAL, AHEAD_MAX = 0.6, 0.8
+
+
 def render_mixture(n: int, seed: int, near_share: float, yaw_deg: float = YAW_DEG,
-                   **rooms):
+                   lateral: float = LATERAL, ahead_max: float = AHEAD_MAX, **rooms):
     """``n`` frames: ``near_share`` of them near the goal point (:data:`NEAR`), the rest
-    over the whole range the head is asked in (``render_offset_views``' defaults), with
-    the camera turned up to ``yaw_deg`` off facing the board; ``rooms``: the rooms
-    (``layout``, ``goal_size``) ``render_offset_views`` takes."""
+    over the whole range the head is asked in (up to ``lateral`` m sideways and
+    ``ahead_max`` m farther than the goal point), with the camera turned up to ``yaw_deg``
+    off facing the board; ``rooms``: the rooms (``layout``, ``goal_size``)
+    ``render_offset_views`` takes."""
     from torchrl_causal.perception.arrival import render_offset_views
 
     n_near = int(round(n * near_share))
@@ -74,6 +80,7 @@ def render_mixture(n: int, seed: int, near_share: float, yaw_deg: float = YAW_DE
         parts.append(render_offset_views(n_near, seed=seed, yaw_deg=yaw_deg, **NEAR, **rooms))
     if n - n_near:
         parts.append(render_offset_views(n - n_near, seed=seed + 500, yaw_deg=yaw_deg,
+                                         lateral=lateral, ahead=(-0.42, ahead_max),
                                          **rooms))
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
 
@@ -96,6 +103,13 @@ def main(argv=None) -> dict:
     p.add_argument("--yaw-deg", type=float, default=YAW_DEG,
                    help="largest yaw off facing the board in the frames (deg, default 30, the "
                         "shipped head's; flights ask the head at up to 60)")
+    p.add_argument("--lateral", type=float, default=LATERAL,
+                   help="the far share's largest sideways offset (m, default 0.6, the shipped "
+                        "head's); the detector sees the board, and the head is asked, farther "
+                        "out")
+    p.add_argument("--ahead-max", type=float, default=AHEAD_MAX,
+                   help="the far share's farthest offset from the goal point along the "
+                        "board's normal (m, default 0.8, the shipped head's)")
     p.add_argument("--data", type=Path, default=None,
                    help="an .npz to reuse the rendered frames from (written when absent): "
                         "xtr, ytr, xte, yte")
@@ -121,6 +135,12 @@ def main(argv=None) -> dict:
         raise ValueError(f"Invalid option --yaw-weight={a.yaw_weight}: expected >= 0")
     if not 0.0 < a.yaw_deg <= 90.0:
         raise ValueError(f"Invalid option --yaw-deg={a.yaw_deg}: expected 0-90")
+    if not 0.35 <= a.lateral <= 2.0:
+        raise ValueError(f"Invalid option --lateral={a.lateral}: expected 0.35-2.0 m (the "
+                         f"near share reaches 0.35)")
+    if not 0.35 <= a.ahead_max <= 2.0:
+        raise ValueError(f"Invalid option --ahead-max={a.ahead_max}: expected 0.35-2.0 m (the "
+                         f"near share reaches 0.35)")
     if a.rooms == "random":
         from torchrl_causal.envs.layouts import check_goal_size
 
@@ -142,6 +162,11 @@ def main(argv=None) -> dict:
         if "rooms" in d and str(d["rooms"]) != a.rooms:
             raise ValueError(f"Invalid option --data={a.data}: its frames are of --rooms "
                              f"{d['rooms']}, not {a.rooms}")
+        poses = [a.yaw_deg, a.lateral, a.ahead_max]
+        if "poses" in d and not np.allclose(d["poses"], poses):
+            raise ValueError(f"Invalid option --data={a.data}: its frames were rendered with "
+                             f"--yaw-deg/--lateral/--ahead-max {d['poses'].tolist()}, not "
+                             f"{poses}")
         if len(xtr) != a.train or len(xte) != a.test:
             raise ValueError(f"Invalid option --data={a.data}: it holds {len(xtr)} + "
                              f"{len(xte)} frames, not --train {a.train} + --test {a.test}")
@@ -151,11 +176,14 @@ def main(argv=None) -> dict:
         if a.rooms == "random":
             rooms = [{"layout": split, "goal_size": tuple(a.goal_size)}
                      for split in ("train", "heldout")]
-        xtr, ytr = render_mixture(a.train, a.seed, a.near_share, a.yaw_deg, **rooms[0])
-        xte, yte = render_mixture(a.test, a.seed + 1000, a.near_share, a.yaw_deg, **rooms[1])
+        wide = {"lateral": a.lateral, "ahead_max": a.ahead_max}
+        xtr, ytr = render_mixture(a.train, a.seed, a.near_share, a.yaw_deg, **wide, **rooms[0])
+        xte, yte = render_mixture(a.test, a.seed + 1000, a.near_share, a.yaw_deg, **wide,
+                                  **rooms[1])
         if a.data is not None:
             a.data.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte, rooms=a.rooms)
+            np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte, rooms=a.rooms,
+                     poses=np.array([a.yaw_deg, a.lateral, a.ahead_max]))
     t1 = time.time()
     est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, yaw_weight=a.yaw_weight,
                             progress=not a.no_progress)
@@ -163,6 +191,7 @@ def main(argv=None) -> dict:
     figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte),
                "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
                "near_share": a.near_share, "near": NEAR, "yaw_deg": a.yaw_deg,
+               "lateral": a.lateral, "ahead_max": a.ahead_max,
                "yaw_weight": a.yaw_weight, "rooms": a.rooms,
                "goal_size": list(a.goal_size) if a.rooms == "random" else [1.0, 0.8],
                "render_s": round(t1 - t0, 1), "train_s": round(t2 - t1, 1),

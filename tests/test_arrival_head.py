@@ -202,7 +202,7 @@ def test_train_arrival_recipe_writes_measured_weights(tmp_path):
     # a second run reads them back instead of rendering: the same figures
     again = train_arrival.main(["--out", str(tmp_path / "again.pt"), "--train", "8", "--test",
                                 "6", "--epochs", "1", "--no-progress", "--yaw-weight", "1",
-                                "--data", str(data)])
+                                "--yaw-deg", "45", "--data", str(data)])
     assert again["test"] == figures["test"]
     # the auxiliary yaw output is kept in the file; the estimator still answers (ahead, lateral)
     assert head.net.outputs == 3 and tuple(head(np.zeros((2, 96, 128, 3), np.uint8)).shape) == (2, 2)
@@ -213,7 +213,8 @@ def test_train_arrival_recipe_writes_measured_weights(tmp_path):
                           (["--epochs", "0"], "--epochs=0"),
                           (["--yaw-weight", "-1"], "--yaw-weight=-1.0"),
                           (["--yaw-deg", "120"], "--yaw-deg=120.0"),
-                          (["--data", str(data), "--train", "9"], "holds 8 \\+ 6 frames"),
+                          (["--data", str(data), "--train", "9", "--yaw-deg", "45"],
+                           "holds 8 \\+ 6 frames"),
                           (["--out", str(tmp_path / "head.bin")], "expected a .pt file")):
         with pytest.raises(ValueError, match=message):
             train_arrival.main(["--out", str(out), *argv])
@@ -258,8 +259,17 @@ def test_views_in_random_rooms_and_the_recipes_rooms_option(tmp_path):
     out, data = tmp_path / "rooms.pt", tmp_path / "rooms.npz"
     figures = train_arrival.main(["--out", str(out), "--train", "4", "--test", "4",
                                   "--epochs", "1", "--no-progress", "--rooms", "random",
-                                  "--compare", "shipped", "--data", str(data)])
+                                  "--compare", "shipped", "--data", str(data),
+                                  "--lateral", "1.0", "--ahead-max", "1.2"])
     assert figures["rooms"] == "random" and figures["goal_size"] == [1.0, 0.8]
+    assert (figures["lateral"], figures["ahead_max"]) == (1.0, 1.2)
+    ytr = np.load(data)["ytr"]  # two near frames, then two of the wider far share
+    assert (abs(ytr[:2, :2]) <= 0.35).all()
+    assert (abs(ytr[2:, 1]) <= 1.0).all() and (ytr[2:, 0] <= 1.2).all()
+    with pytest.raises(ValueError, match=r"rendered with --yaw-deg/--lateral/--ahead-max "
+                                         r"\[30.0, 1.0, 1.2\], not \[30.0, 0.6, 0.8\]"):
+        train_arrival.main(["--out", str(out), "--train", "4", "--test", "4",
+                            "--rooms", "random", "--data", str(data)])
     assert figures["compare"]["weights"] == "shipped" and figures["compare"]["test"]["n"] == 4
     assert json.loads(out.with_suffix(".json").read_text())["compare"] == figures["compare"]
     with pytest.raises(ValueError, match="its frames are of --rooms random, not thesis"):
@@ -267,6 +277,8 @@ def test_views_in_random_rooms_and_the_recipes_rooms_option(tmp_path):
                             "--data", str(data)])
     for argv, message in ((["--compare", str(tmp_path / "none.pt")], "--compare=.*none.pt"),
                           (["--rooms", "random", "--goal-size", "0.1", "0.8"],
-                           "--goal-size")):
+                           "--goal-size"),
+                          (["--lateral", "0.2"], "--lateral=0.2"),
+                          (["--ahead-max", "3"], "--ahead-max=3.0")):
         with pytest.raises(ValueError, match=message):
             train_arrival.main(["--out", str(out), *argv])
