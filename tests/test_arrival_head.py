@@ -131,6 +131,14 @@ def test_tello_env_arrives_by_the_head():
     assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
     assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # two in a row
     held.close()
+    # ... only near the goal point (within twice max_goal_offset): a board lost after a
+    # look that put the drone 0.5 m off is one the camera left, and nothing is asked
+    seq = iter([(0.5, 0.0), (0.0, 0.0)])
+    left = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
+    assert left._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
+    assert left._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None
+    left.close()
     # arrival_fusion: looks taken without a move across the floor (a turn: _last_move is
     # zero) are averaged; a move forward starts a new place, with its segment
     seq = iter([(0.30, 0.0), (0.10, 0.0), (0.20, 0.0), (0.05, 0.10)])

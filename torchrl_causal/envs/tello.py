@@ -697,17 +697,24 @@ class TelloEnv(EnvBase):
         not already put the drone outside ``max_goal_offset`` (where it was trained); the
         3-D segment starts at the last step's estimate only if that one was asked too.
 
-        A board the detector loses right after the head was asked with it in sight (at
-        0.3-0.4 m it fills the view and the detector's recall falls) is still the board
-        in front: the head is asked for that one step more, never for two in a row
-        without a detection. A climb or descent (no move across the floor) sweeps the
+        A board the detector loses right after the head was asked with it in sight and
+        put the drone within twice ``max_goal_offset`` of the goal point (there the board
+        fills the view and the detector's recall falls) is still the board in front: the
+        head is asked for that one step more, never for two in a row without a
+        detection. A climb or descent (no move across the floor) sweeps the
         heights between two steps: the height sensor's gate then looks at the nearest
         of them, the segment runs vertically from the last height, and a board sighted
         within range one step before is held even if the head was not asked there."""
         if self.arrival_head is not None:
             rule = self.reach_rule
             prev, self._prev_offset = self._prev_offset, None
-            held, self._prev_seen = prev is not None and self._prev_seen, False
+            # held only near the goal point (within twice the rule's radius), where the
+            # board fills the view and the detector loses it; farther out a lost board is
+            # one the camera turned or flew away from, and the head, asked on a frame
+            # without it, read "at the goal point" 0.5-0.9 m off it (docs/tello.rst)
+            held = (prev is not None and self._prev_seen
+                    and float(np.linalg.norm(prev)) <= 2 * rule.max_goal_offset)
+            self._prev_seen = False
             dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
             # a climb or a descent without a move across the floor sweeps the heights
             # between the last step's and this one's: it may have crossed the goal's
