@@ -63,7 +63,9 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     # the default recipe's videos (one thesis-scene and outputs.videos held-out episodes)
     # are recorded by one variant (the code is shared)
     videos = ["outputs.videos=1"] if variant == "dqn_image" else []
-    args = [f"output_dir={out}", *TINY, *every, *videos]
+    # the CBN drawings (16 figures, about 6 s) are drawn by one variant (the code is shared)
+    drawings = [] if variant == "cbn_v2" else ["outputs.draw_cbns=false"]
+    args = [f"output_dir={out}", *TINY, *every, *videos, *drawings]
     if variant == "dqn_image":  # the command line, as a user runs it
         r = _run(["--config-name", variant, *args])
         assert f"Plots: {out / 'plots'}" in r.stdout
@@ -111,7 +113,7 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     learned = json.loads((out / "cbns" / "last" / "learner.json").read_text())
     assert len(learned["actions"]) == 8
     assert len(list((out / "cbns" / "last").glob("*.xmlbif"))) == 8
-    assert len(list((out / "cbns" / "last").glob("*.png"))) == 8
+    assert len(list((out / "cbns" / "last").glob("*.png"))) == (8 if drawings == [] else 0)
     if variant == "cbn_defined":
         from torchrl_causal.causal import expert_dags
 
@@ -121,7 +123,7 @@ def test_variant_runs_end_to_end(variant, tmp_path):
     else:
         table = (out / "tables" / "table_5_1.md").read_text()
         assert table.count("\n| ") == 8 and "| forward | 14 |" in table
-        assert len(list((out / "cbns" / "first").glob("*.png"))) == 8
+        assert len(list((out / "cbns" / "first").glob("*.png"))) == (8 if drawings == [] else 0)
 
 
 def test_recipe_trains_on_several_envs(tmp_path):
