@@ -149,8 +149,8 @@ class Run(NamedTuple):
         else:
             name, own = "cbn_v2", [f"seed={self.seed}", f"causal.k={self.value}"]
         own.append(f"output_dir={self.run_dir}")
-        keys = {o.split("=", 1)[0] for o in own}
-        rest = [o for o in merge_overrides(base) if o.split("=", 1)[0].lstrip("+~") not in keys]
+        keys = {_override_key(o) for o in own}
+        rest = [o for o in merge_overrides(base) if _override_key(o) not in keys]
         return ["--config-name", name, *own, *rest]
 
 
@@ -173,13 +173,18 @@ def run_plan(root: Path, mode: str, seeds: int, variants, k_values,
     return plan
 
 
+def _override_key(override: str) -> str:
+    """``key`` of a hydra override ``[+|~]key=value``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
 def merge_overrides(*groups: list[str]) -> list[str]:
     """Hydra overrides with one entry per key: a later ``key=value`` replaces an earlier one
     (so ``-- collector.total_frames=500`` replaces the mode's)."""
     merged: dict[str, str] = {}
     for group in groups:
         for o in group:
-            key = o.split("=", 1)[0].lstrip("+~")
+            key = _override_key(o)
             merged.pop(key, None)
             merged[key] = o
     return list(merged.values())

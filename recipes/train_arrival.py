@@ -135,12 +135,11 @@ def main(argv=None) -> dict:
         raise ValueError(f"Invalid option --yaw-weight={a.yaw_weight}: expected >= 0")
     if not 0.0 < a.yaw_deg <= 90.0:
         raise ValueError(f"Invalid option --yaw-deg={a.yaw_deg}: expected 0-90")
-    if not 0.35 <= a.lateral <= 2.0:
-        raise ValueError(f"Invalid option --lateral={a.lateral}: expected 0.35-2.0 m (the "
-                         f"near share reaches 0.35)")
-    if not 0.35 <= a.ahead_max <= 2.0:
-        raise ValueError(f"Invalid option --ahead-max={a.ahead_max}: expected 0.35-2.0 m (the "
-                         f"near share reaches 0.35)")
+    for name, v in (("lateral", a.lateral), ("ahead-max", a.ahead_max)):
+        if not 0.35 <= v <= 2.0:
+            raise ValueError(f"Invalid option --{name}={v}: expected 0.35-2.0 m (the near "
+                             f"share reaches 0.35)")
+    poses = [a.yaw_deg, a.lateral, a.ahead_max]  # what an --data npz was rendered with
     if a.rooms == "random":
         from torchrl_causal.envs.layouts import check_goal_size
 
@@ -162,7 +161,6 @@ def main(argv=None) -> dict:
         if "rooms" in d and str(d["rooms"]) != a.rooms:
             raise ValueError(f"Invalid option --data={a.data}: its frames are of --rooms "
                              f"{d['rooms']}, not {a.rooms}")
-        poses = [a.yaw_deg, a.lateral, a.ahead_max]
         if "poses" in d and not np.allclose(d["poses"], poses):
             raise ValueError(f"Invalid option --data={a.data}: its frames were rendered with "
                              f"--yaw-deg/--lateral/--ahead-max {d['poses'].tolist()}, not "
@@ -183,7 +181,7 @@ def main(argv=None) -> dict:
         if a.data is not None:
             a.data.parent.mkdir(parents=True, exist_ok=True)
             np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte, rooms=a.rooms,
-                     poses=np.array([a.yaw_deg, a.lateral, a.ahead_max]))
+                     poses=np.array(poses))
     t1 = time.time()
     est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, yaw_weight=a.yaw_weight,
                             progress=not a.no_progress)
