@@ -256,7 +256,7 @@ def test_check_env_specs_single_serial_parallel():
     senv = SerialEnv(2, _make_env)
     check_env_specs(senv)
     senv.close()
-    penv = ParallelEnv(2, _make_env)
+    penv = ParallelEnv(2, _make_env, mp_start_method="fork")
     check_env_specs(penv)
     td = penv.rollout(3)
     assert td["pixels"].shape == (2, 3, 84, 84, 3)

@@ -23,7 +23,7 @@ def _hist_env(seed=0):
 def test_action_history_specs_alone_serial_and_parallel():
     check_env_specs(_hist_env())
     check_env_specs(SerialEnv(2, _hist_env))
-    penv = ParallelEnv(2, _hist_env)
+    penv = ParallelEnv(2, _hist_env, mp_start_method="fork")
     try:
         check_env_specs(penv)
     finally:

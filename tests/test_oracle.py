@@ -147,7 +147,7 @@ def test_evaluate_reports_spl():
     assert spl_of(True, 24, 12) == 0.5 and math.isnan(spl_of(True, 3, float("nan")))
 
 
-def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path):
+def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path, monkeypatch):
     from torchrl_causal.training.flightmap import outcome_of, plot_flight_map, plot_flight_maps
 
     env = DroneNavEnv("random", split="heldout", layout_seed=3, image_size=32, seed=1)
@@ -168,6 +168,19 @@ def test_flight_maps_draw_paths_by_outcome_with_the_oracle(tmp_path):
     assert outcome_of(eps[0]) in kinds and "oracle" in kinds
     out = plot_flight_maps(eps, tmp_path / "grid.png")
     assert (tmp_path / "one.png").stat().st_size > 10_000 and out.stat().st_size > 10_000
+
+    # the same episodes evaluated again (fixed evaluation episodes): the oracle's plans come
+    # from the env's cache, no search runs, and the figures are the same
+    searches = []
+    real = ShortestPathPlanner.plan
+    monkeypatch.setattr(ShortestPathPlanner, "plan",
+                        lambda self, *a, **k: searches.append(1) or real(self, *a, **k))
+    again = evaluate(forward, env, episodes=2, seed=0, per_episode=True, max_steps=30)
+    assert searches == [] and again["oracle_steps"] == res["oracle_steps"]
+    assert [e["oracle_plan"] for e in again["episodes"]] == [e["oracle_plan"] for e in eps]
+    # another start (another evaluation seed) is searched
+    evaluate(forward, env, episodes=1, seed=5, per_episode=True, max_steps=30)
+    assert searches == [1]
     with pytest.raises(ValueError, match="layout"):
         plot_flight_map([{"success": True}])
 

@@ -71,7 +71,9 @@ def test_rgb_stack_in_env_reads_no_simulator_truth(models):
 @pytest.mark.parametrize("batched", [SerialEnv, ParallelEnv])
 def test_rgb_stack_on_batched_envs(models, batched):
     make = functools.partial(DroneNavEnv, seed=0)
-    benv = batched(2, make)
+    # fork: the workers start with this process's imports (spawn re-imports torch and
+    # MuJoCo in each, about 8 s of the suite's time)
+    benv = batched(2, make, **({"mp_start_method": "fork"} if batched is ParallelEnv else {}))
     hfov = DroneNavEnv().hfov_deg
     det, depth = models
     tenv = TransformedEnv(benv, make_causal_transforms(
