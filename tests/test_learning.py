@@ -63,9 +63,9 @@ def test_short_training_run_beats_random_flight(tmp_path):
     # recipes/train.py --config-name cbn_defined ARGS, run in this process (an interpreter's
     # start-up and imports cost seconds of the suite's time; the run is the same)
     sys.path.insert(0, str(ROOT / "tests"))
-    import test_recipes as tr
+    from test_recipes_smoke import _train_here
 
-    tr.train.train(tr._cfg("cbn_defined", args))
+    _train_here("cbn_defined", args)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == FRAMES
     eps = pd.read_csv(out / "episodes.csv")
