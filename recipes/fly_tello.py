@@ -166,6 +166,11 @@ def parse_args(argv=None):
                         "one SDK 'go' (docs/tello.rst, 'A final approach'). 'auto' "
                         f"(default): {FINAL_APPROACH_RADIUS} m wherever the arrival head "
                         "flies, else off; 'none': off")
+    p.add_argument("--hold-radius", type=float, default=None, metavar="M",
+                   help="with the arrival head: a board the detector loses is held for one "
+                        "step when the head's last estimate put the goal point within M m "
+                        "(default: twice --reach-offset; docs/tello.rst, 'The hold and the "
+                        "threshold')")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -253,6 +258,12 @@ def parse_args(argv=None):
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
                 "(--arrival-head shipped or a weights file; 'auto' chose none here)")
+    if a.hold_radius is not None:
+        if a.arrival_head is None:
+            p.error(f"--hold-radius {a.hold_radius:g} holds the arrival head's board: it needs "
+                    "the head (--arrival-head shipped or a weights file; 'auto' chose none here)")
+        if not 0.05 <= a.hold_radius <= 1.0:
+            p.error(f"--hold-radius must be a distance in [0.05, 1.0] m, got {a.hold_radius:g}")
     if a.final_approach == "auto":  # measured with the head (docs/tello.rst)
         a.final_approach = FINAL_APPROACH_RADIUS if a.arrival_head is not None else None
     elif a.final_approach == "none":
@@ -442,6 +453,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
     if kw.get("arrival_head") is not None:
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
         kw["final_approach"] = getattr(args, "final_approach", None)
+        kw["hold_radius"] = getattr(args, "hold_radius", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -577,6 +589,8 @@ def main(argv=None) -> dict:
         summary["arrival_fusion"] = True
     if getattr(args, "final_approach", None) is not None:
         summary["final_approach"] = args.final_approach
+    if getattr(args, "hold_radius", None) is not None:
+        summary["hold_radius"] = args.hold_radius
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

@@ -139,6 +139,21 @@ def test_tello_env_arrives_by_the_head():
     assert left._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
     assert left._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None
     left.close()
+    # ... unless hold_radius sets that distance itself: at 0.6 m the same loss is held
+    seq = iter([(0.5, 0.0), (0.1, 0.0)])
+    wide = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+                    hold_radius=0.6)
+    assert wide._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
+    assert wide._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
+    wide.close()
+    for bad, match in ((dict(hold_radius=-0.1, arrival_head=head((0.0, 0.0))), "hold_radius"),
+                       (dict(hold_radius=float("nan"), arrival_head=head((0.0, 0.0))),
+                        "hold_radius"),
+                       (dict(hold_radius=0.4), "hold_radius=0.4 .* needs arrival_head")):
+        with pytest.raises(ValueError, match=match):
+            TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                     reach_rule=rule, **bad)
     # arrival_fusion: looks taken without a move across the floor (a turn: _last_move is
     # zero) are averaged; a move forward starts a new place, with its segment
     seq = iter([(0.30, 0.0), (0.10, 0.0), (0.20, 0.0), (0.05, 0.10)])

@@ -150,6 +150,8 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--arrival-head", "none", "--final-approach", "0.4"], "it needs the head"),
     (["--final-approach", "near"], "--final-approach must be a radius (m), 'auto' or 'none'"),
     (["--final-approach", "2.5"], "--final-approach must be a radius in [0.05, 1.0] m"),
+    (["--arrival-head", "none", "--hold-radius", "0.4"], "--hold-radius 0.4 holds the arrival"),
+    (["--hold-radius", "0"], "--hold-radius must be a distance in [0.05, 1.0] m, got 0"),
     (["--host", "192.168.10.1", "--goal-size", "1", "0.8", "--dry-run"],
      "the option is the emulator's"),
     (["--layout", "heldout", "--goal-size", "0.1", "0.8"], "--goal-size must be two sizes"),
@@ -206,6 +208,10 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
                                 ).final_approach is None
     assert fly_tello.parse_args(["--run", str(POLICY), "--final-approach", "0.3"]
                                 ).final_approach == 0.3
+    # --hold-radius: unset (TelloEnv's twice --reach-offset) unless given
+    assert thesis.hold_radius is None
+    assert fly_tello.parse_args(["--run", str(POLICY), "--hold-radius", "0.4"]
+                                ).hold_radius == 0.4
 
 
 def test_the_full_width_check_is_the_default_on_random_layouts():
@@ -255,7 +261,8 @@ def test_the_board_plane_head_flies_any_board_with_the_final_approach():
 
     args = fly_tello.parse_args(["--run", str(POLICY), "--layout", "heldout", "--perception",
                                  "sim", "--arrival-head", "depth", "--reach-offset", "0.2",
-                                 "--final-approach", "0.4", "--dry-run"])
+                                 "--final-approach", "0.4", "--hold-radius", "0.5",
+                                 "--dry-run"])
     assert args.arrival_head == "depth" and args.final_approach == 0.4
     assert args.reach_rule.full_width is False  # the head decides, as on the thesis board
     # the default on random layouts with the simulator's depth, where it was measured
@@ -276,6 +283,7 @@ def test_the_board_plane_head_flies_any_board_with_the_final_approach():
     try:
         assert isinstance(env.arrival_head, BoardPlaneOffset)
         assert isinstance(env.final_approach, FinalApproach) and env.final_approach.radius == 0.4
+        assert env.hold_radius == 0.5
     finally:
         env.close()
 

@@ -229,6 +229,13 @@ class TelloEnv(EnvBase):
             fired, the env flies the last leg itself (one SDK ``go x y z speed`` to the
             estimated goal point) within the same step and observes again
             (docs/tello.rst, "A final approach"); None (default): never.
+        hold_radius: with ``arrival_head``, how near the goal point (m, the head's
+            last estimate with the board in sight) a board the detector then loses is
+            still held for one step; None (default): twice the rule's
+            ``max_goal_offset`` (0.4 m at the 0.2 m rule). A lower threshold shrinks
+            that default below a ``final_approach`` radius, so a board lost after an
+            approach from farther out is not held (docs/tello.rst, "The hold and the
+            threshold").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
             default the take-off frame: x forward, y left at take-off), checked on
             the dead-reckoned position before each move; None: no geofence.
@@ -296,6 +303,7 @@ class TelloEnv(EnvBase):
         arrival_head: Callable | None = None,
         arrival_fusion: bool = False,
         final_approach: FinalApproach | float | None = None,
+        hold_radius: float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -392,6 +400,12 @@ class TelloEnv(EnvBase):
         self.max_steps = int(max_steps)
         self.max_depth = float(max_depth)
         self.reach_rule = reach_rule
+        if hold_radius is not None:
+            if arrival_head is None:
+                raise ValueError(f"hold_radius={hold_radius!r} holds the arrival head's board: "
+                                 "it needs arrival_head")
+            hold_radius = _num("hold_radius", hold_radius, 0, strict=True)
+        self.hold_radius = hold_radius
         if not isinstance(arrival_fusion, bool):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
@@ -712,8 +726,9 @@ class TelloEnv(EnvBase):
             # board fills the view and the detector loses it; farther out a lost board is
             # one the camera turned or flew away from, and the head, asked on a frame
             # without it, read "at the goal point" 0.5-0.9 m off it (docs/tello.rst)
+            hold = 2 * rule.max_goal_offset if self.hold_radius is None else self.hold_radius
             held = (prev is not None and self._prev_seen
-                    and float(np.linalg.norm(prev)) <= 2 * rule.max_goal_offset)
+                    and float(np.linalg.norm(prev)) <= hold)
             self._prev_seen = False
             dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
             # a climb or a descent without a move across the floor sweeps the heights
