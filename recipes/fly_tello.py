@@ -24,7 +24,9 @@ Writes to ``--out`` (default ``<run>/tello_<emulator|host>``): ``episodes.csv``
 success, crash, out_of_bounds; plus ``success_sim``, ``closest_sim_m`` and
 ``land_offset_sim_m``, the emulator's ground truth, ``battery``, and
 ``goal_distance_m`` / ``goal_angle_deg``, the last step's measured range and bearing
-to the goal box: for a "reached" episode, the reading the arrival rule fired on),
+to the goal box: for a "reached" episode, the reading the arrival rule fired on,
+``approaches``, and ``crash_sim``, what an emulated crash hit: ``board``, ``obstacle``,
+``wall``, ``ceiling`` or ``floor``),
 ``onboard.mp4`` (the decoded onboard video, H.264 via PyAV)
 and ``summary.json`` (success rates with 95 % Wilson intervals; with
 ``--compare-sim N`` also the same policy's greedy episodes in ``DroneNavEnv``).
@@ -57,7 +59,7 @@ from torchrl_causal.envs.control import TELLO_MOVE_NOISE as NOISE  # noqa: E402
 REAL_HOST_DEFAULT = "192.168.10.1"
 CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out_of_bounds",
                "success_sim", "closest_sim_m", "land_offset_sim_m", "battery",
-               "goal_distance_m", "goal_angle_deg", "approaches"]
+               "goal_distance_m", "goal_angle_deg", "approaches", "crash_sim"]
 
 
 def parse_args(argv=None):
@@ -509,7 +511,10 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
                    "goal_distance_m": round(float(nxt["goal_distance"]), 3),
                    "goal_angle_deg": round(float(nxt["goal_angle"]), 1),
                    # final approaches (SDK go) flown in the episode (--final-approach)
-                   "approaches": base.approaches - approaches0}
+                   "approaches": base.approaches - approaches0,
+                   # what an emulated crash hit: the surface nearest the drone's centre
+                   "crash_sim": (emu.env.layout.nearest_surface(gt["crash_at"])[0]
+                                 if gt and gt.get("crash_at") else "")}
             csv.write(row)
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -657,6 +662,8 @@ def main(argv=None) -> dict:
         summary["missed_reach"] = sum(1 for r in rows if r["success_sim"] and not r["success"])
         closest = [r["closest_sim_m"] for r in rows if r["closest_sim_m"] != ""]
         summary["closest_sim_m_median"] = float(np.median(closest)) if closest else None
+        sites = [r["crash_sim"] for r in rows if r["crash_sim"]]
+        summary["crash_sim"] = {k: sites.count(k) for k in sorted(set(sites))}
     summary["success"] = summarize(rows)
     summary["crashes"] = sum(r["crash"] for r in rows)
     summary["mean_length"] = float(np.mean([r["length"] for r in rows]))

@@ -159,3 +159,20 @@ def test_helipad_texture_in_memory():
 def test_generator_bad_options(kwargs, name):
     with pytest.raises(ValueError, match=name):
         RandomLayoutGenerator(**kwargs)
+
+
+def test_nearest_surface_names_what_a_point_touches():
+    """Layout.nearest_surface: the board, an obstacle, the floor, and an enclosed layout's
+    walls and ceiling, each with the distance to its surface (what a crash hit)."""
+    lay = thesis_layout(enclosed=True)  # pillar 0.3 x 0.3 at (1.25, -0.1); board face x=2.98
+    name, d = lay.nearest_surface((2.80, 0.1, 1.0))
+    assert name == "board" and d == pytest.approx(0.18)
+    name, d = lay.nearest_surface((1.25, 0.15, 1.2))  # 0.1 m beside the pillar's side
+    assert name == "obstacle" and d == pytest.approx(0.1)
+    assert lay.nearest_surface((0.0, 0.0, 0.05)) == ("floor", pytest.approx(0.05))
+    assert lay.nearest_surface((-1.4, 0.0, 1.2)) == ("wall", pytest.approx(0.1))
+    assert lay.nearest_surface((0.0, 0.0, 2.45)) == ("ceiling", pytest.approx(0.05))
+    open_lay = thesis_layout()  # open field: no walls, no ceiling
+    assert open_lay.nearest_surface((-1.4, 0.0, 1.2))[0] not in ("wall", "ceiling")
+    # inside the board: distance 0
+    assert lay.nearest_surface((3.0, 0.0, 1.0)) == ("board", 0.0)

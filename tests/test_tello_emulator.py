@@ -201,6 +201,10 @@ def test_protocol_errors_and_faults_on_raw_socket(emu):
         assert _ask(s, emu, "forward 200") == "error Motor stop"
         assert emu.crashed and not emu.flying
         assert any("collision" in line for line in emu.log)
+        # where it hit: the drone's centre at the pillar's face, the pillar nearest it
+        hit = emu.ground_truth()["crash_at"]
+        assert hit is not None and emu.env.layout.nearest_surface(hit)[0] == "obstacle"
+        assert emu.env.layout.nearest_surface(hit)[1] < 0.25
     finally:
         emu.faults = TelloFaults()
         s.close()

@@ -51,6 +51,10 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert set(rows["success_sim"]) <= {0, 1} and (rows["length"] >= 1).all()
     # the closest approach agrees with the simulator's verdict (0.2 m reach radius)
     assert ((rows["closest_sim_m"] <= 0.2) == (rows["success_sim"] == 1)).all(), rows
+    # what a crash hit is named for every crash and only there
+    hit = rows["crash_sim"].fillna("").astype(str)
+    assert ((hit != "") == (rows["crash"] == 1)).all(), rows
+    assert sum(summary["crash_sim"].values()) == int(rows["crash"].sum())
     offsets = rows["land_offset_sim_m"].str.split().apply(lambda v: [float(x) for x in v])
     assert (offsets.apply(len) == 3).all()
     # the reading each "reached" fired on: within the rule's range (or a board held out of

@@ -259,6 +259,34 @@ class Layout:
         ).replace("-0.0", "0.0")
         return hashlib.sha1(text.encode()).hexdigest()
 
+    def nearest_surface(self, pos) -> tuple[str, float]:
+        """What in the scene lies nearest the point ``pos = (x, y, z)``, and how far (m).
+
+        ``"board"`` (the goal board), ``"obstacle"``, ``"wall"`` or ``"ceiling"`` (an
+        ``enclosed`` layout's) or ``"floor"``: the distance is from ``pos`` to that
+        object's surface (0 inside it). Tells what an emulated crash hit, from where the
+        drone's centre was when it hit (``TelloEmulator.ground_truth()["crash_at"]``).
+
+        Example:
+            >>> from torchrl_causal.envs.layouts import thesis_layout
+            >>> lay = thesis_layout()  # the board's face at x = 2.98
+            >>> name, d = lay.nearest_surface((2.85, 0.0, 1.0))
+            >>> name, round(d, 2)
+            ('board', 0.13)
+        """
+        x, y, z = (float(v) for v in pos[:3])
+        found = [("floor", max(z, 0.0))]
+        for name, o in [("obstacle", o) for o in self.obstacles] + [
+                ("board", self.board_obstacle())]:
+            flat = float(o.footprint_distance(x, y))
+            above = max(abs(z - o.center[2]) - o.half_size[2], 0.0)
+            found.append((name, math.hypot(flat, above)))
+        if self.enclosed:
+            xmin, ymin, xmax, ymax = self.arena
+            found += [("wall", max(min(x - xmin, xmax - x, y - ymin, ymax - y), 0.0)),
+                      ("ceiling", max(self.height - z, 0.0))]
+        return min(found, key=lambda f: f[1])
+
     def board_obstacle(self) -> Obstacle:
         """The goal board as a box obstacle (for path planning)."""
         return Obstacle(

@@ -398,6 +398,7 @@ class TelloEmulator:
         self.reached = False
         self.closest_goal_m = math.inf  # closest approach to the goal point since take-off
         self.land_offset_m: tuple | None = None  # drone - goal point (m) at the land command
+        self.crash_at: tuple | None = None  # the drone's (x, y, z) at its collision (m)
         self._pose = (0.0, 0.0, 0.0, 0.0)
         self._motion: _Motion | None = None
         self._pending: collections.deque = collections.deque()
@@ -507,11 +508,13 @@ class TelloEmulator:
         """Simulation ground truth since the last take-off: ``reached`` (the drone passed
         within the env's ``reach_radius`` of the goal point), ``crashed``, ``flying``,
         ``pose``, ``battery``, ``closest_goal_m`` (the closest approach to the goal
-        point, m) and ``land_offset_m`` (drone minus goal point, x/y/z in m, when
-        the ``land`` command came; None before one)."""
+        point, m), ``land_offset_m`` (drone minus goal point, x/y/z in m, when
+        the ``land`` command came; None before one) and ``crash_at`` (the drone's
+        ``(x, y, z)`` at its collision; None without one)."""
         return {"reached": self.reached, "crashed": self.crashed, "flying": self.flying,
                 "pose": self._pose, "battery": self.battery,
-                "closest_goal_m": self.closest_goal_m, "land_offset_m": self.land_offset_m}
+                "closest_goal_m": self.closest_goal_m, "land_offset_m": self.land_offset_m,
+                "crash_at": self.crash_at}
 
     def reset_world(self, timeout: float = 30.0) -> None:
         """Puts the drone back, landed, at the start of a (new, for random layouts) layout.
@@ -858,7 +861,7 @@ class TelloEmulator:
                 z0 = self.env._executor.pose()[2]
                 target = self.takeoff_height or float(self.env.layout.start_pos[2])
                 self.crashed = self.reached = False
-                self.closest_goal_m, self.land_offset_m = math.inf, None
+                self.closest_goal_m, self.land_offset_m, self.crash_at = math.inf, None, None
                 self._takeoff_yaw = self._pose[3]
                 self._flight_time = 0.0
                 self.flying = True
@@ -1057,6 +1060,7 @@ class TelloEmulator:
         self._pending.clear()
         self._rc = (0.0, 0.0, 0.0, 0.0)
         x, y, z, _ = self._pose
+        self.crash_at = (x, y, z)
         self._event(f"collision at ({x:.2f}, {y:.2f}, {z:.2f}): motors stopped", logging.WARNING)
         self._set_z(self._ground_z())
         if reply_to is not None:
