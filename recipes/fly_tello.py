@@ -173,6 +173,12 @@ def parse_args(argv=None):
                         "step when the head's last estimate put the goal point within M m "
                         "(default: twice --reach-offset; docs/tello.rst, 'The hold and the "
                         "threshold')")
+    p.add_argument("--lost-board", choices=("hold", "carry"), default="hold",
+                   help="with the arrival head: a board the detector has just lost near the "
+                        "goal point gives, for one step, the head's reading of the frame "
+                        "without it ('hold', default) or the last estimate carried by the "
+                        "dead-reckoned move ('carry'; needs the final approach's heading; "
+                        "docs/tello.rst, 'Carrying a lost board')")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -284,6 +290,10 @@ def parse_args(argv=None):
         if not 0.05 <= a.final_approach <= 1.0:
             p.error(f"--final-approach must be a radius in [0.05, 1.0] m, got "
                     f"{a.final_approach:g}")
+    if a.lost_board != "hold" and a.final_approach is None:
+        p.error(f"--lost-board {a.lost_board} turns the dead-reckoned move into the board's "
+                "frame with the final approach's heading: it needs --final-approach (and the "
+                "arrival head)")
     if a.reach_full_width == "auto":  # where it was measured to help (docs/tello.rst)
         a.reach_full_width = "on" if full_width_applies(a) else "off"
     if a.no_height_check:
@@ -456,6 +466,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
         kw["final_approach"] = getattr(args, "final_approach", None)
         kw["hold_radius"] = getattr(args, "hold_radius", None)
+        kw["lost_board"] = getattr(args, "lost_board", "hold")
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -596,6 +607,8 @@ def main(argv=None) -> dict:
         summary["final_approach"] = args.final_approach
     if getattr(args, "hold_radius", None) is not None:
         summary["hold_radius"] = args.hold_radius
+    if getattr(args, "lost_board", "hold") != "hold":
+        summary["lost_board"] = args.lost_board
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

@@ -147,7 +147,31 @@ def test_tello_env_arrives_by_the_head():
     assert wide._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
     assert wide._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
     wide.close()
+    # lost_board="carry": the lost board's step reads no frame; the last estimate is moved
+    # by the dead-reckoned displacement, turned by the final approach's fitted heading
+    # (here pi: flying +x in odometry brings the drone nearer the board)
+    for lost, third in (("carry", 0.05), ("hold", 0.0)):
+        seq = iter([(0.8, 0.0), (0.3, 0.0), (0.0, 0.0)])
+        carry = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                         reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+                         final_approach=0.4, lost_board=lost)
+        carry._world = np.array([-0.5, 0.0])
+        assert carry._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.8)
+        carry._world, carry._last_move = np.array([0.0, 0.0]), (0.5, 0.0, 0.0)
+        assert carry._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.3)
+        carry._world, carry._last_move = np.array([0.25, 0.0]), (0.25, 0.0, 0.0)
+        # carry: from (0.3, 0) to (0.05, 0), 0.05 m off; hold: the head is asked on the
+        # frame without the board and reads (0, 0)
+        got = carry._goal_offset(False, dmap, box, 1.0, frame, 0.0)
+        assert got == pytest.approx(third, abs=1e-6), lost
+        assert (next(seq, None) is None) is (lost == "hold")  # carry asked no frame
+        assert carry._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # one step only
+        carry.close()
     for bad, match in ((dict(hold_radius=-0.1, arrival_head=head((0.0, 0.0))), "hold_radius"),
+                       (dict(lost_board="keep", arrival_head=head((0.0, 0.0))),
+                        "lost_board must be 'hold' or 'carry', got 'keep'"),
+                       (dict(lost_board="carry", arrival_head=head((0.0, 0.0))),
+                        "it needs final_approach"),
                        (dict(hold_radius=float("nan"), arrival_head=head((0.0, 0.0))),
                         "hold_radius"),
                        (dict(hold_radius=0.4), "hold_radius=0.4 .* needs arrival_head")):

@@ -156,6 +156,8 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--final-approach", "2.5"], "--final-approach must be a radius in [0.05, 1.0] m"),
     (["--arrival-head", "none", "--hold-radius", "0.4"], "--hold-radius 0.4 holds the arrival"),
     (["--hold-radius", "0"], "--hold-radius must be a distance in [0.05, 1.0] m, got 0"),
+    (["--lost-board", "carry", "--final-approach", "none"], "it needs --final-approach"),
+    (["--lost-board", "keep"], "invalid choice: 'keep'"),
     (["--host", "192.168.10.1", "--goal-size", "1", "0.8", "--dry-run"],
      "the option is the emulator's"),
     (["--layout", "heldout", "--goal-size", "0.1", "0.8"], "--goal-size must be two sizes"),
@@ -266,7 +268,7 @@ def test_the_board_plane_head_flies_any_board_with_the_final_approach():
     args = fly_tello.parse_args(["--run", str(POLICY), "--layout", "heldout", "--perception",
                                  "sim", "--arrival-head", "depth", "--reach-offset", "0.2",
                                  "--final-approach", "0.4", "--hold-radius", "0.5",
-                                 "--dry-run"])
+                                 "--lost-board", "carry", "--dry-run"])
     assert args.arrival_head == "depth" and args.final_approach == 0.4
     assert args.reach_rule.full_width is False  # the head decides, as on the thesis board
     # the default on random layouts with the simulator's depth, where it was measured
@@ -287,7 +289,7 @@ def test_the_board_plane_head_flies_any_board_with_the_final_approach():
     try:
         assert isinstance(env.arrival_head, BoardPlaneOffset)
         assert isinstance(env.final_approach, FinalApproach) and env.final_approach.radius == 0.4
-        assert env.hold_radius == 0.5
+        assert env.hold_radius == 0.5 and env.lost_board == "carry"
     finally:
         env.close()
 

@@ -229,6 +229,12 @@ class TelloEnv(EnvBase):
             fired, the env flies the last leg itself (one SDK ``go x y z speed`` to the
             estimated goal point) within the same step and observes again
             (docs/tello.rst, "A final approach"); None (default): never.
+        lost_board: with ``arrival_head``, what a board the detector has just lost
+            (within ``hold_radius``) gives for one step: ``"hold"`` (default) asks the
+            head on the frame without the detection; ``"carry"`` reads no frame and
+            carries the head's last estimate by the drone's dead-reckoned move since,
+            turned into the board's frame by ``final_approach``'s fitted heading (needs
+            ``final_approach``; docs/tello.rst, "Carrying a lost board").
         hold_radius: with ``arrival_head``, how near the goal point (m, the head's
             last estimate with the board in sight) a board the detector then loses is
             still held for one step; None (default): twice the rule's
@@ -304,6 +310,7 @@ class TelloEnv(EnvBase):
         arrival_fusion: bool = False,
         final_approach: FinalApproach | float | None = None,
         hold_radius: float | None = None,
+        lost_board: str = "hold",
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -406,6 +413,13 @@ class TelloEnv(EnvBase):
                                  "it needs arrival_head")
             hold_radius = _num("hold_radius", hold_radius, 0, strict=True)
         self.hold_radius = hold_radius
+        if lost_board not in ("hold", "carry"):
+            raise ValueError(f"lost_board must be 'hold' or 'carry', got {lost_board!r}")
+        if lost_board == "carry" and final_approach is None:
+            raise ValueError("lost_board='carry' turns the dead-reckoned move into the board's "
+                             "frame with final_approach's fitted heading: it needs "
+                             "final_approach")
+        self.lost_board = lost_board
         if not isinstance(arrival_fusion, bool):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
@@ -695,6 +709,7 @@ class TelloEnv(EnvBase):
         frame measured alone)."""
         self._prev_offset = None  # the arrival head's last (ahead, lateral, dz), for the segment
         self._prev_seen = False  # that estimate came with the board in the detector's sight
+        self._prev_world = None  # the dead-reckoned (x, y) where that estimate was read
         self._prev_dz = None  # the height sensor's offset from the goal height, last step
         self._prev_sighted = False  # the detector saw the board within range, last step
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
@@ -745,6 +760,8 @@ class TelloEnv(EnvBase):
             plane = self._plane
             if plane:  # the depth map's board plane: the box of this frame, none held
                 held = False
+            if held and not in_sight and self.lost_board == "carry" and prev is not None:
+                return self._carried(prev, dz)
             if (frame is None and not plane) or (not in_sight and not held) or (
                     in_sight and distance is not None and not distance <= rule.max_distance):
                 return None
@@ -777,11 +794,25 @@ class TelloEnv(EnvBase):
             if prev is None and climbed:  # the same place, swept from the last height
                 prev = np.array([look[0], look[1], dz_prev])
             self._prev_offset, self._prev_seen = cur, in_sight
+            self._prev_world = self._world.copy()
             return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,
                                            moved=self._last_move, altitude=altitude)
+
+    def _carried(self, prev, dz: float) -> float | None:
+        """``lost_board="carry"``: the segment from the head's last estimate ``prev`` to
+        that estimate moved by the dead-reckoned displacement since it was read, turned
+        into the board's frame by the final approach's fitted heading (None without
+        one). Nothing is stored: a second step without the board gives nothing."""
+        alpha = self.final_approach.heading()
+        if alpha is None or self._prev_world is None:
+            return None
+        dw = self._world - self._prev_world
+        c, s = math.cos(alpha), math.sin(alpha)
+        cur = np.array([prev[0] + c * dw[0] - s * dw[1], prev[1] + s * dw[0] + c * dw[1], dz])
+        return segment_distance(prev, cur)
 
     def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
         frame = self._fresh_frame(frame_since)
