@@ -395,6 +395,24 @@ class FinalApproach:
             return None
         return math.atan2(cross, dot)
 
+    def carried(self, estimate, displacement):
+        """``estimate`` ``(ahead, lateral)`` moved by the dead-reckoned ``displacement``
+        ``(dx, dy)`` (m, the odometry frame) since it was read, turned into the board's
+        frame by :meth:`heading`; None without a heading.
+
+        Example:
+            >>> fa = FinalApproach()
+            >>> fa.record((0.0, 0.0), (0.8, 0.0)); fa.record((0.5, 0.0), (0.3, 0.0))
+            >>> [round(float(v), 2) for v in fa.carried((0.3, 0.0), (0.25, 0.0))]
+            [0.05, 0.0]
+        """
+        alpha = self.heading()
+        if alpha is None:
+            return None
+        c, s = math.cos(alpha), math.sin(alpha)
+        dx, dy = (float(v) for v in displacement[:2])
+        return np.array([estimate[0] + c * dx - s * dy, estimate[1] + s * dx + c * dy])
+
     def plan(self, estimate, yaw: float, threshold: float = 0.0):
         """The ``go`` of the last leg, ``(forward, left, up)`` in whole cm, or None.
 

@@ -806,13 +806,10 @@ class TelloEnv(EnvBase):
         that estimate moved by the dead-reckoned displacement since it was read, turned
         into the board's frame by the final approach's fitted heading (None without
         one). Nothing is stored: a second step without the board gives nothing."""
-        alpha = self.final_approach.heading()
-        if alpha is None or self._prev_world is None:
+        if self._prev_world is None:
             return None
-        dw = self._world - self._prev_world
-        c, s = math.cos(alpha), math.sin(alpha)
-        cur = np.array([prev[0] + c * dw[0] - s * dw[1], prev[1] + s * dw[0] + c * dw[1], dz])
-        return segment_distance(prev, cur)
+        moved = self.final_approach.carried(prev, self._world - self._prev_world)
+        return None if moved is None else segment_distance(prev, np.array([*moved, dz]))
 
     def _observe(self, frame_since, crashed=False, out_of_bounds=False) -> dict:
         frame = self._fresh_frame(frame_since)
