@@ -130,6 +130,10 @@ def parse_args(argv=None):
                         "later views overturn). On MonoDepth's depth estimated arrives more "
                         "often and crashes more often (docs/tello.rst, 'A map for estimated "
                         "depth')")
+    p.add_argument("--fresh-hits", action="store_true",
+                   help="with --map estimated: what the current frame reads is an obstacle "
+                        "for that step whatever the map's log-odds say (EgoMap fresh_hits; "
+                        "docs/tello.rst, 'What the drone sees now')")
     p.add_argument("--reach-offset", type=float, default=None,
                    help="ReachRule: the drone's estimated distance to the goal point (board "
                         "plane from depth, board edges, --board-width, --goal-standoff) must "
@@ -290,6 +294,9 @@ def parse_args(argv=None):
         if not 0.05 <= a.final_approach <= 1.0:
             p.error(f"--final-approach must be a radius in [0.05, 1.0] m, got "
                     f"{a.final_approach:g}")
+    if a.fresh_hits and a.map != "estimated":
+        p.error(f"--fresh-hits overrides the log-odds of the estimated map: it needs --map "
+                f"estimated, got --map {a.map}")
     if a.lost_board != "hold" and a.final_approach is None:
         p.error(f"--lost-board {a.lost_board} turns the dead-reckoned move into the board's "
                 "frame with the final approach's heading: it needs --final-approach (and the "
@@ -584,7 +591,8 @@ def main(argv=None) -> dict:
     if uses_map:  # EgoMap reads the depth this flight has (--map)
         ego = cfg.features.get("ego_map")
         cfg.features.ego_map = {**(OmegaConf.to_container(ego) if ego is not None else {}),
-                                "depth": args.map}
+                                "depth": args.map,
+                                **({"fresh_hits": True} if args.fresh_hits else {})}
     real = args.host is not None
     # the emulator's scene and noise draws, and --compare-sim's episodes (--seed: others)
     seed = int(cfg.seed if args.seed is None else args.seed)
@@ -598,6 +606,8 @@ def main(argv=None) -> dict:
                      "noise": bool(args.noise), "reach_rule": args.reach_rule.to_dict()}
     if uses_map:
         summary["map"] = args.map
+        if args.fresh_hits:
+            summary["fresh_hits"] = True
     for opt in ("depth_weights", "detector_weights", "arrival_head"):
         if getattr(args, opt, None):
             summary[opt] = str(getattr(args, opt))
@@ -686,7 +696,8 @@ def main(argv=None) -> dict:
         noise = ["env.noise=tello"] if args.noise else []
         if args.compare_perception == "rgb":
             noise += ["features.options.perception=rgb"] + (
-                [f"features.ego_map.depth={args.map}"] if uses_map else [])
+                [f"features.ego_map.depth={args.map}"] if uses_map else []) + (
+                ["++features.ego_map.fresh_hits=true"] if uses_map and args.fresh_hits else [])
         scene = emulated_scene(args, cfg)[0]
         if args.goal_size is not None:  # the emulator's layouts, boards and all
             noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]

@@ -394,6 +394,32 @@ def test_a_phantom_stays_on_an_exact_map_and_later_views_erase_it_from_an_estima
         assert _cells_ahead(ego, 1.0, 6.0) > 0
 
 
+@pytest.mark.parametrize("fresh_hits", [False, True])
+def test_fresh_hits_make_what_the_drone_sees_now_an_obstacle_for_this_step(fresh_hits):
+    """Cells seen free for five views, then read occupied in one frame: the log-odds alone
+    keep them free (the forward move stays allowed); with ``fresh_hits`` the reading blocks
+    the forward move for that step, and the next true view frees it again."""
+    stray = _StrayDepth(0.35, "band")
+    env = TransformedEnv(DroneNavEnv(seed=0),
+                         Compose(stray, EgoMap(depth="estimated", fresh_hits=fresh_hits)))
+    ego = env.transform[-1]
+    td = _fly(env, env.reset(), ["ascend", "descend", "ascend", "descend"])  # 5 views: free
+    assert _cells_ahead(ego, 0.2, 0.5) == 0 and bool(td["action_mask"][A["forward"]])
+    clear_before = float(td["map_clearance"][0])
+    assert clear_before * 2 > 0.5
+    stray.armed = True
+    td = _fly(env, td, ["ascend"])  # one frame reads an obstacle 0.35 m ahead
+    assert (_cells_ahead(ego, 0.2, 0.5) > 0) == fresh_hits
+    assert bool(td["action_mask"][A["forward"]]) == (not fresh_hits)
+    if fresh_hits:
+        assert float(td["map_clearance"][0]) * 2 < 0.2
+    else:
+        assert float(td["map_clearance"][0]) == pytest.approx(clear_before, abs=0.08)
+    stray.armed = False
+    td = _fly(env, td, ["descend"])  # a true view: free again either way
+    assert _cells_ahead(ego, 0.2, 0.5) == 0 and bool(td["action_mask"][A["forward"]])
+
+
 @pytest.mark.parametrize("depth", ["exact", "estimated"])
 def test_one_stray_pixel_per_column_is_an_obstacle_only_on_an_exact_map(depth):
     stray = _StrayDepth(0.5, "one")
@@ -431,6 +457,10 @@ def test_depth_model_options_are_named():
         EgoMap(depth="estimated", log_odds=(0.85, 0.4))
     with pytest.raises(ValueError, match="log_odds applies to depth='estimated'"):
         EgoMap(log_odds=(0.85, 0.4, 3.5))
+    with pytest.raises(ValueError, match="fresh_hits applies to depth='estimated'"):
+        EgoMap(fresh_hits=True)
+    with pytest.raises(ValueError, match="fresh_hits must be True or False, got 'yes'"):
+        EgoMap(depth="estimated", fresh_hits="yes")
     assert EgoMap(depth="estimated").scan_quantile == 0.5
     assert EgoMap().scan_quantile == 0.0
 

@@ -158,6 +158,8 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--hold-radius", "0"], "--hold-radius must be a distance in [0.05, 1.0] m, got 0"),
     (["--lost-board", "carry", "--final-approach", "none"], "it needs --final-approach"),
     (["--lost-board", "keep"], "invalid choice: 'keep'"),
+    (["--fresh-hits"], "--fresh-hits overrides the log-odds of the estimated map: it needs "
+                       "--map estimated, got --map exact"),
     (["--host", "192.168.10.1", "--goal-size", "1", "0.8", "--dry-run"],
      "the option is the emulator's"),
     (["--layout", "heldout", "--goal-size", "0.1", "0.8"], "--goal-size must be two sizes"),
@@ -371,10 +373,12 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     assert "--depth-weights" in err and "nope.pt" in err
 
 
-@pytest.mark.parametrize("argv, expected", [([], "exact"), (["--map", "estimated"], "estimated")])
+@pytest.mark.parametrize("argv, expected", [([], "exact"), (["--map", "estimated"], "estimated"),
+                                            (["--map", "estimated", "--fresh-hits"], "estimated")])
 def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys, argv, expected):
     """--map: the generalist's EgoMap trusts every depth reading (exact, the default) or
-    treats MonoDepth's depth as an estimate (median column reading, log-odds cells)."""
+    treats MonoDepth's depth as an estimate (median column reading, log-odds cells);
+    --fresh-hits adds what the current frame reads (EgoMap fresh_hits)."""
     from torchrl_causal.transforms import EgoMap
 
     assert fly_tello.parse_args(argv).map == expected
@@ -385,13 +389,15 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
     fly = fly_tello.fly
 
     def spy(args, policy, tenv, base, emu=None):
-        seen.extend(t.depth for t in tenv.transform if isinstance(t, EgoMap))
+        seen.extend((t.depth, t.fresh_hits) for t in tenv.transform if isinstance(t, EgoMap))
         return fly(args, policy, tenv, base, emu)
 
     monkeypatch.setattr(fly_tello, "fly", spy)
     summary = fly_tello.main(["--episodes", "1", "--max-steps", "4", *argv,
                               "--out", str(tmp_path), "--no-video", "--seed", "3"])
-    assert seen == [expected] and summary["map"] == expected
+    fresh = "--fresh-hits" in argv
+    assert seen == [(expected, fresh)] and summary["map"] == expected
+    assert summary.get("fresh_hits", False) is fresh
     assert (tmp_path / "episodes.csv").is_file()
 
 

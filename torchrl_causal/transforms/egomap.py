@@ -169,6 +169,15 @@ class EgoMap(Transform):
             its bound (``"estimated"`` only; default
             :data:`OCTOMAP_LOG_ODDS`). A cell is an obstacle while its
             log-odds is above 0 and seen free while below 0.
+        fresh_hits: ``"estimated"`` only: a cell in which a reading of the
+            current frame ends is an obstacle for this step whatever its
+            log-odds (default False: the log-odds alone decide). Earlier views
+            can have driven a cell's log-odds far below 0 (a reading that fell
+            behind the surface, or a pose that drifted), and then the obstacle
+            seen now takes several frames to flip back; with this option the
+            map holds at least what the drone sees now, as the exact map does,
+            and a phantom read in one frame masks moves for that step only
+            (docs/tello.rst, "What the drone sees now").
 
     Example:
         >>> import torch
@@ -189,7 +198,7 @@ class EgoMap(Transform):
                  min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
                  geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0,
                  goal_prior: float | None = None, depth: str = "exact",
-                 scan_quantile: float | None = None, log_odds=None):
+                 scan_quantile: float | None = None, log_odds=None, fresh_hits: bool = False):
         if depth not in DEPTH_MODELS:
             raise ValueError(f"EgoMap depth must be one of {DEPTH_MODELS}, got {depth!r}")
         if scan_quantile is None:
@@ -202,6 +211,10 @@ class EgoMap(Transform):
             raise ValueError(f"EgoMap log_odds applies to depth='estimated', got depth={depth!r}")
         if log_odds is None:
             log_odds = OCTOMAP_LOG_ODDS
+        if not isinstance(fresh_hits, bool):
+            raise ValueError(f"EgoMap fresh_hits must be True or False, got {fresh_hits!r}")
+        if fresh_hits and depth != "estimated":
+            raise ValueError(f"EgoMap fresh_hits applies to depth='estimated', got depth={depth!r}")
         ok = isinstance(log_odds, (tuple, list)) and len(log_odds) == 3 and all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
             for v in log_odds)
@@ -257,6 +270,7 @@ class EgoMap(Transform):
         self.depth = depth
         self.scan_quantile = float(scan_quantile)
         self.log_odds = tuple(float(v) for v in log_odds)
+        self.fresh_hits = fresh_hits
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -385,8 +399,8 @@ class EgoMap(Transform):
             lo = (st["logodds"][idx] + l_hit * hit.float() - l_pass * passed.float()
                   ).clamp(-l_max, l_max)
             st["logodds"][idx] = lo
-            st["occ"][idx] = lo > 0
-            st["free"][idx] = lo < 0
+            st["occ"][idx] = (lo > 0) | hit if self.fresh_hits else lo > 0
+            st["free"][idx] = (lo < 0) & ~st["occ"][idx]
             return
         self._write_sticky(st, idx, depth)
 
