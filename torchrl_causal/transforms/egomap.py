@@ -65,7 +65,9 @@ is the median of its in-band pixels (``scan_quantile``), so one stray pixel
 makes no obstacle, and each cell keeps a log-odds occupancy (the sensor model
 of OctoMap, Hornung et al., 2013: +0.85 per hit, -0.4 per pass, clamped to
 +-3.5; ``log_odds``) that later views can overturn, so a phantom obstacle
-read in one frame is erased when the drone looks through it again.
+read in one frame is erased when the drone looks through it again. With
+``fresh_hits=True`` the current frame's readings are obstacles for that step
+whatever the log-odds say, so the map never holds less than the drone sees now.
 """
 
 from __future__ import annotations
