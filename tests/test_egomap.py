@@ -420,69 +420,6 @@ def test_fresh_hits_make_what_the_drone_sees_now_an_obstacle_for_this_step(fresh
     assert _cells_ahead(ego, 0.2, 0.5) == 0 and bool(td["action_mask"][A["forward"]])
 
 
-class _NoDepth(Transform):
-    """Zeroes ``depth``: no reading, so no depth cell on the map (the board alone is left)."""
-
-    def __init__(self):
-        super().__init__(in_keys=["depth"], out_keys=["depth"])
-
-    def _call(self, td):
-        td["depth"] = torch.zeros_like(td["depth"])
-        return td
-
-    def _reset(self, td, td_reset):
-        return self._call(td_reset)
-
-
-@pytest.mark.parametrize("board_width", [None, 1.0])
-def test_board_width_puts_the_seen_board_on_the_map(board_width):
-    """The thesis scene without depth readings: only ``board_width`` maps the board, as a
-    1 m segment around its true place (the goal memory's 0.45 m error), and it stays on
-    the map once the board is out of view."""
-    base = DroneNavEnv(seed=0)  # the board is in view at reset
-    env = TransformedEnv(base, Compose(_NoDepth(), EgoMap(board_width=board_width)))
-    ego = env.transform[-1]
-
-    def board_points():  # the cells the clearances, the mask and ego_map see beside occ
-        cells = ego._board(ego._state, torch.arange(1))[0].nonzero().float()
-        return ((cells - ego.cells / 2.0 + 0.5) * ego.resolution).numpy()
-
-    env.reset()
-    assert len(_occupied_points(ego)) == 0  # no depth reading
-    pts = board_points()
-    if board_width is None:
-        assert len(pts) == 0
-        return
-    gx, gy = _start_frame(base, base.layout.goal_center[:2])
-    assert len(pts) >= 6
-    assert max(math.hypot(p[0] - gx, p[1] - gy) for p in pts) < 0.5 + 0.45 + ego.resolution
-    span = max(math.hypot(*(a - b)) for a in pts for b in pts)
-    assert 0.8 <= span <= 1.0 + 2 * ego.resolution
-    td = _fly(env, env.reset(), ["turn_left"] * 6)  # out of view: still on the map
-    assert not bool(td["goal_in_sight"]) and len(board_points()) == len(pts)
-
-
-def test_board_width_masks_the_move_into_the_board_the_memory_holds():
-    """A board measured 0.3 m ahead: forward is masked by the board segment alone (no depth
-    reading), sideways moves are not; 0.8 m ahead, forward stays allowed."""
-    from tensordict import TensorDict
-
-    def seen_at(distance):
-        ego = EgoMap(board_width=1.0)
-        td = TensorDict({"depth": torch.zeros(60, 80), "goal_in_sight": torch.tensor([True]),
-                         "goal_distance": torch.tensor([distance]),
-                         "goal_angle": torch.tensor([0.0]), "altitude": torch.tensor([1.0])}, [])
-        return ego._reset(None, td)
-
-    near, far = seen_at(0.3), seen_at(0.8)
-    assert not bool(near["action_mask"][A["forward"]])
-    assert bool(near["action_mask"][A["left"]]) and bool(near["action_mask"][A["right"]])
-    assert 2 * float(near["map_clearance"][0]) < 0.2
-    assert bool(far["action_mask"][A["forward"]])
-    assert 2 * float(far["map_clearance"][0]) == pytest.approx(0.8 - 0.12 - 0.075, abs=0.08)
-    assert bool(near["ego_map"][0].any())  # the policy's map image shows it
-
-
 @pytest.mark.parametrize("depth", ["exact", "estimated"])
 def test_one_stray_pixel_per_column_is_an_obstacle_only_on_an_exact_map(depth):
     stray = _StrayDepth(0.5, "one")
@@ -520,8 +457,6 @@ def test_depth_model_options_are_named():
         EgoMap(depth="estimated", log_odds=(0.85, 0.4))
     with pytest.raises(ValueError, match="log_odds applies to depth='estimated'"):
         EgoMap(log_odds=(0.85, 0.4, 3.5))
-    with pytest.raises(ValueError, match="board_width must be a finite number > 0.0, got -1"):
-        EgoMap(board_width=-1)
     with pytest.raises(ValueError, match="fresh_hits applies to depth='estimated'"):
         EgoMap(fresh_hits=True)
     with pytest.raises(ValueError, match="fresh_hits must be True or False, got 'yes'"):

@@ -180,14 +180,6 @@ class EgoMap(Transform):
             map holds at least what the drone sees now, as the exact map does,
             and a phantom read in one frame masks moves for that step only
             (docs/tello.rst, "What the drone sees now").
-        board_width: None (default), or the goal board's width (m): once the
-            goal has really been seen, the board itself is an obstacle on the
-            map for the clearances, the mask and ``ego_map``: a segment of
-            this width through the goal's remembered place, square to the
-            line along which it was last seen. Near the goal point the board
-            fills the view, the detector loses it and a depth estimate of a
-            board that close is poor, while the goal memory keeps the place
-            measured farther out (docs/tello.rst, "The board on the map").
 
     Example:
         >>> import torch
@@ -208,8 +200,7 @@ class EgoMap(Transform):
                  min_clearance: float = 0.2, n_actions: int = 8, action_key="action",
                  geofence=None, geofence_margin: float = 0.1, flank_margin: float = 0.0,
                  goal_prior: float | None = None, depth: str = "exact",
-                 scan_quantile: float | None = None, log_odds=None, fresh_hits: bool = False,
-                 board_width: float | None = None):
+                 scan_quantile: float | None = None, log_odds=None, fresh_hits: bool = False):
         if depth not in DEPTH_MODELS:
             raise ValueError(f"EgoMap depth must be one of {DEPTH_MODELS}, got {depth!r}")
         if scan_quantile is None:
@@ -224,8 +215,6 @@ class EgoMap(Transform):
             log_odds = OCTOMAP_LOG_ODDS
         if not isinstance(fresh_hits, bool):
             raise ValueError(f"EgoMap fresh_hits must be True or False, got {fresh_hits!r}")
-        if board_width is not None:
-            _number("board_width", board_width)
         if fresh_hits and depth != "estimated":
             raise ValueError(f"EgoMap fresh_hits applies to depth='estimated', got depth={depth!r}")
         ok = isinstance(log_odds, (tuple, list)) and len(log_odds) == 3 and all(
@@ -284,7 +273,6 @@ class EgoMap(Transform):
         self.scan_quantile = float(scan_quantile)
         self.log_odds = tuple(float(v) for v in log_odds)
         self.fresh_hits = fresh_hits
-        self.board_width = None if board_width is None else float(board_width)
         self._state = None  # per flattened batch entry: pose, maps, goal
 
     # ----------------------------------------------------------- geometry
@@ -317,8 +305,6 @@ class EgoMap(Transform):
             # depth="estimated": each cell's log-odds of being occupied (occ / free: > 0 / < 0)
             "logodds": torch.zeros(n, lo, lo, device=device),
             "goal": torch.zeros(n, 3, device=device),  # x, y, z-above-start-camera
-            # the unit vector along which the goal was last seen (board_width's segment)
-            "sightline": torch.zeros(n, 2, device=device),
             "known": torch.zeros(n, dtype=torch.bool, device=device),
             "seen": torch.zeros(n, dtype=torch.bool, device=device),  # known, not a guess
             "since": torch.zeros(n, device=device),
@@ -479,39 +465,16 @@ class EgoMap(Transform):
             new[:, :2] = torch.where(cut_h[:, None], old[:, :2], new[:, :2])
             new[:, 2] = torch.where(cut_v, old[:, 2], new[:, 2])
         sel = idx[sight]
-        line = new[:, :2] - pose[:, :2]
-        line = line / line.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        st["sightline"][sel] = line[sight]
         st["goal"][sel] = new[sight]
         st["known"][sel] = True
         st["seen"][sel] = True
         st["since"][sel] = 0.0
 
     # ------------------------------------------------------------ outputs
-    def _board(self, st, idx):
-        """``[n, C, C]`` bool: the cells of the seen board's segment (``board_width``)."""
-        occ = torch.zeros_like(st["occ"][idx])
-        seen = st["seen"][idx]
-        if self.board_width is None or not bool(seen.any()):
-            return occ
-        k = int(math.ceil(self.board_width / (self.resolution / 2))) + 1
-        t = torch.linspace(-self.board_width / 2, self.board_width / 2, k, device=occ.device)
-        g, line = st["goal"][idx, :2], st["sightline"][idx]
-        across = torch.stack([-line[:, 1], line[:, 0]], -1)  # square to the sight line
-        pts = g[:, None, :] + t[None, :, None] * across[:, None, :]  # [n, k, 2]
-        half = self.cells / 2.0
-        i = torch.floor(pts[..., 0] / self.resolution + half).long()
-        j = torch.floor(pts[..., 1] / self.resolution + half).long()
-        ok = (i >= 0) & (i < self.cells) & (j >= 0) & (j < self.cells) & seen[:, None]
-        rows = torch.arange(idx.numel(), device=occ.device)[:, None].expand_as(i)
-        occ[rows[ok], i[ok], j[ok]] = True
-        return occ
-
     def _outputs(self, st, idx, altitude):
         pose = st["pose"][idx]
         n = idx.numel()
-        occ = st["occ"][idx] | self._board(st, idx)
-        world = torch.stack([occ, st["free"][idx]], 1).float()  # [n, 2, C, C]
+        world = torch.stack([st["occ"][idx], st["free"][idx]], 1).float()  # [n, 2, C, C]
         known = st["known"][idx]
         # egocentric window: output row r is ahead of the drone, column q to its left
         c, s = pose[:, 2].cos(), pose[:, 2].sin()
@@ -548,16 +511,15 @@ class EgoMap(Transform):
         vec = torch.stack([k, k * fwd / 5.0, k * left / 5.0, k * up,
                            k * torch.sqrt(fwd ** 2 + left ** 2) / 5.0,
                            (st["since"][idx] / 50.0).clamp(max=1.0)], -1)
-        return ego, vec, self._clearance(st, idx, occ)
+        return ego, vec, self._clearance(st, idx)
 
-    def _clearance(self, st, idx, occ):
-        """Free distance (m / 2, capped at 1) the drone's hull can move ahead, back, left, right
-        (``occ``: the occupied cells of the entries ``idx``)."""
+    def _clearance(self, st, idx):
+        """Free distance (m / 2, capped at 1) the drone's hull can move ahead, back, left, right."""
         out = torch.ones(idx.numel(), 4, device=st["pose"].device)
         half = self.cells / 2.0
         width = DRONE_HALF_WIDTH + self.resolution / 2
         for row, b in enumerate(idx.tolist()):
-            cells = occ[row].nonzero()
+            cells = st["occ"][b].nonzero()
             if not len(cells):
                 continue
             xy = (cells.float() - half + 0.5) * self.resolution
