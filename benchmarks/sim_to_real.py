@@ -63,12 +63,13 @@ TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reache
 
 
 def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
-        map_depth: str | None = None, compare_perception: str = "sim") -> dict:
+        map_depth: str | None = None, compare_perception: str = "sim",
+        fresh_hits: bool = False) -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
     perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``,
-    ``compare_perception`` its ``--compare-perception``.
+    ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``.
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
@@ -79,6 +80,8 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
             argv += [flag, str(weights[key])]
     if map_depth is not None:
         argv += ["--map", map_depth]
+    if fresh_hits:
+        argv += ["--fresh-hits"]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.main(argv)
 
@@ -97,7 +100,8 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "dronenav_perception": s["dronenav"].get("perception", "sim"),
             "detector_weights": s.get("detector_weights", "shipped"),
             "depth_weights": s.get("depth_weights", "shipped"),
-            "map": s.get("map"), "wall_s": s.get("wall_s")}
+            "map": s.get("map"), "fresh_hits": bool(s.get("fresh_hits", False)),
+            "wall_s": s.get("wall_s")}
 
 
 def pooled_figure(policy: str, figures: list[dict]) -> dict:
@@ -140,12 +144,17 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--map", choices=("exact", "estimated"), default=None,
                    help="fly_tello.py --map: EgoMap's depth model for a policy that reads its "
                         "map (default: fly_tello's, exact)")
+    p.add_argument("--fresh-hits", action="store_true",
+                   help="fly_tello.py --fresh-hits (needs --map estimated): what the current "
+                        "frame reads is an obstacle for that step")
     p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
                    help="fly_tello.py --compare-perception: DroneNavEnv's reference with the "
                         "simulator's perception (default) or the same RGB models")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
+    if a.fresh_hits and a.map != "estimated":
+        p.error(f"--fresh-hits needs --map estimated, got --map {a.map or 'exact (the default)'}")
     for flag, path in (("--detector-weights", a.detector_weights),
                        ("--depth-weights", a.depth_weights)):
         if path is not None and not path.is_file():
@@ -161,7 +170,7 @@ def main(argv=None) -> list[dict]:
         per_seed = []
         for seed in a.seeds:
             s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map,
-                    a.compare_perception)
+                    a.compare_perception, a.fresh_hits)
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

@@ -420,9 +420,17 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
                              "--out", str(tmp_path), "--map", "estimated"])
     assert [c[c.index("--map") + 1] for c in calls] == ["estimated", "estimated"]
     assert [f.get("map") for f in figs] == ["estimated", "estimated", None]
+    assert not any("--fresh-hits" in c for c in calls)
+    calls.clear()
+    sim_to_real.main(["--policies", "generalist", "--seeds", "1", "--episodes", "2",
+                      "--out", str(tmp_path), "--map", "estimated", "--fresh-hits"])
+    assert len(calls) == 1 and "--fresh-hits" in calls[0]
     with pytest.raises(SystemExit):
         sim_to_real.main(["--map", "auto"])
     assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sim_to_real.main(["--fresh-hits"])
+    assert "--fresh-hits needs --map estimated, got --map exact (the default)" in capsys.readouterr().err
 
 
 def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():
