@@ -6,7 +6,8 @@
     python benchmarks/sim_to_real.py --policies thesis generalist --episodes 50
     python benchmarks/sim_to_real.py --episodes 2 --seeds 0   # a smoke run
     python benchmarks/sim_to_real.py --detector-weights W.pt  # candidate weights, same flights
-    python benchmarks/sim_to_real.py --policies generalist --map estimated  # EgoMap's depth model
+    python benchmarks/sim_to_real.py --policies generalist --map exact  # EgoMap's depth model
+    python benchmarks/sim_to_real.py --policies generalist --goal-size 1.0 0.8  # printed board
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
@@ -31,9 +32,12 @@ generalist held-out random layouts. Prints one JSON object per figure:
 ``--detector-weights`` / ``--depth-weights`` fly candidate perception weights
 (a ``recipes/train_detector.py`` or ``recipes/train_depth.py`` run) in place of
 the shipped ones; each seed's object names the weights it flew. ``--map``
-(``exact`` or ``estimated``) is fly_tello's: the depth model of the
-generalist's :class:`~torchrl_causal.transforms.EgoMap` (recorded as ``map``;
-None for a policy without one).
+(``exact`` or ``estimated``; default fly_tello's ``auto``: estimated on RGB) is
+fly_tello's: the depth model of the generalist's
+:class:`~torchrl_causal.transforms.EgoMap` (recorded as ``map``; None for a
+policy without one). ``--goal-size W H`` gives the generalist's random layouts
+every board that size; at 1.0 0.8, the field guide's printed board, fly_tello's
+``--arrival-head auto`` flies the shipped random-rooms head.
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
 """
@@ -64,12 +68,13 @@ TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reache
 
 def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
         map_depth: str | None = None, compare_perception: str = "sim",
-        fresh_hits: bool = False) -> dict:
+        fresh_hits: bool = False, goal_size=None) -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
     perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``,
-    ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``.
+    ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``,
+    ``goal_size`` its ``--goal-size`` (random layouts only).
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
@@ -82,6 +87,8 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
         argv += ["--map", map_depth]
     if fresh_hits:
         argv += ["--fresh-hits"]
+    if goal_size is not None:
+        argv += ["--goal-size", *(str(v) for v in goal_size)]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.main(argv)
 
@@ -89,7 +96,8 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
 def seed_figure(policy: str, seed: int, s: dict) -> dict:
     n = s["success_sim"]["n"]
     return {"figure": "sim_to_real", "policy": policy, "seed": seed, "episodes": n,
-            "layout": s.get("layout"), "arrival_head": s.get("arrival_head"),
+            "layout": s.get("layout"), "goal_size": s.get("goal_size"),
+            "arrival_head": s.get("arrival_head"),
             "final_approach": s.get("final_approach"),
             "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
             "agreement": s["agreement"], "false_reached": s["false_reached"],
@@ -143,18 +151,28 @@ def main(argv=None) -> list[dict]:
                    help="candidate MonoDepth weights to fly instead of the shipped ones")
     p.add_argument("--map", choices=("exact", "estimated"), default=None,
                    help="fly_tello.py --map: EgoMap's depth model for a policy that reads its "
-                        "map (default: fly_tello's, exact)")
+                        "map (default: fly_tello's auto, estimated on RGB)")
     p.add_argument("--fresh-hits", action="store_true",
-                   help="fly_tello.py --fresh-hits (needs --map estimated): what the current "
+                   help="fly_tello.py --fresh-hits (needs the estimated map): what the current "
                         "frame reads is an obstacle for that step")
+    p.add_argument("--goal-size", type=float, nargs=2, default=None, metavar=("W", "H"),
+                   help="fly_tello.py --goal-size for the generalist's random layouts, e.g. "
+                        "1.0 0.8, the printed board (the thesis scene keeps its own)")
     p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
                    help="fly_tello.py --compare-perception: DroneNavEnv's reference with the "
                         "simulator's perception (default) or the same RGB models")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
-    if a.fresh_hits and a.map != "estimated":
-        p.error(f"--fresh-hits needs --map estimated, got --map {a.map or 'exact (the default)'}")
+    if a.fresh_hits and a.map == "exact":
+        p.error("--fresh-hits needs the estimated map, got --map exact")
+    if a.goal_size is not None:
+        from torchrl_causal.envs.layouts import check_goal_size
+
+        try:
+            check_goal_size(a.goal_size)
+        except ValueError as e:
+            p.error(f"--goal-size must be two sizes the layouts take: {e}")
     for flag, path in (("--detector-weights", a.detector_weights),
                        ("--depth-weights", a.depth_weights)):
         if path is not None and not path.is_file():
@@ -170,7 +188,8 @@ def main(argv=None) -> list[dict]:
         per_seed = []
         for seed in a.seeds:
             s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map,
-                    a.compare_perception, a.fresh_hits)
+                    a.compare_perception, a.fresh_hits,
+                    a.goal_size if name != "thesis" else None)
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

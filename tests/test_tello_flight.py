@@ -189,10 +189,11 @@ def test_the_reach_rule_options_build_the_rule():
 
 
 def test_the_arrival_head_is_the_default_where_it_was_measured():
-    """--arrival-head auto: the shipped head (offset <= 0.15 m, range bound 1.0 m) for RGB
-    perception on the thesis board -- the thesis scene or a real drone's printed board --
-    and the depth map's rule elsewhere."""
-    from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS
+    """--arrival-head auto, on RGB perception and the 1.0 x 0.8 m board: the shipped
+    thesis-room head (offset <= 0.15 m, range bound 1.0 m) on the thesis scene, the shipped
+    random-rooms head (offset <= 0.13 m) in other rooms -- a real drone's, the emulator's
+    random layouts with the printed board --, and the depth map's rule elsewhere."""
+    from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS, ROOMS_WEIGHTS
 
     thesis = fly_tello.parse_args(["--run", str(POLICY)])
     assert thesis.arrival_head == str(DEFAULT_WEIGHTS)
@@ -202,7 +203,16 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
     assert fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.18"]
                                 ).reach_rule.max_goal_offset == 0.18  # the user's value wins
     real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])
-    assert real.arrival_head == str(DEFAULT_WEIGHTS)
+    assert real.arrival_head == str(ROOMS_WEIGHTS)
+    assert real.reach_rule.max_goal_offset == fly_tello.ROOMS_REACH_OFFSET == 0.13
+    rooms = fly_tello.parse_args(["--goal-size", "1.0", "0.8"])  # the generalist, printed board
+    assert rooms.arrival_head == str(ROOMS_WEIGHTS) and rooms.final_approach == 0.4
+    assert (rooms.reach_rule.max_goal_offset, rooms.reach_rule.board_width) == (0.13, 1.0)
+    assert fly_tello.parse_args(["--arrival-head", "rooms", "--reach-offset", "0.2"]
+                                ).arrival_head == str(ROOMS_WEIGHTS)
+    assert fly_tello.parse_args(["--goal-size", "0.8", "0.6"]).arrival_head is None
+    assert fly_tello.parse_args(["--goal-size", "1.0", "0.8", "--board-width", "0.9"]
+                                ).arrival_head is None
     for other in (["--layout", "heldout"], ["--perception", "sim"], ["--board-width", "0.8"],
                   ["--arrival-head", "none"]):
         args = fly_tello.parse_args(["--run", str(POLICY), *other])
@@ -373,18 +383,24 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     assert "--depth-weights" in err and "nope.pt" in err
 
 
-@pytest.mark.parametrize("argv, expected", [([], "exact"), (["--map", "estimated"], "estimated"),
-                                            (["--map", "estimated", "--fresh-hits"], "estimated")])
+@pytest.mark.parametrize("argv, expected", [([], "estimated"), (["--map", "exact"], "exact"),
+                                            (["--fresh-hits"], "estimated")])
 def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys, argv, expected):
-    """--map: the generalist's EgoMap trusts every depth reading (exact, the default) or
-    treats MonoDepth's depth as an estimate (median column reading, log-odds cells);
-    --fresh-hits adds what the current frame reads (EgoMap fresh_hits)."""
+    """--map: the generalist's EgoMap trusts every depth reading (exact) or treats the
+    depth as an estimate (median column reading, log-odds cells: auto's choice on
+    MonoDepth's depth); --fresh-hits adds what the current frame reads (EgoMap fresh_hits)."""
     from torchrl_causal.transforms import EgoMap
 
     assert fly_tello.parse_args(argv).map == expected
+    assert fly_tello.parse_args(["--perception", "sim"]).map == "exact"  # the simulator's depth
+    assert fly_tello.parse_args(["--perception", "sim-depth"]).map == "exact"
+    assert fly_tello.parse_args(["--perception", "sim-detector"]).map == "estimated"
     with pytest.raises(SystemExit):
-        fly_tello.parse_args(["--map", "auto"])
-    assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
+        fly_tello.parse_args(["--map", "guess"])
+    assert "--map: invalid choice: 'guess'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        fly_tello.parse_args(["--perception", "sim", "--fresh-hits"])
+    assert "--fresh-hits" in capsys.readouterr().err
     seen = []
     fly = fly_tello.fly
 
@@ -429,8 +445,16 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
         sim_to_real.main(["--map", "auto"])
     assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        sim_to_real.main(["--fresh-hits"])
-    assert "--fresh-hits needs --map estimated, got --map exact (the default)" in capsys.readouterr().err
+        sim_to_real.main(["--fresh-hits", "--map", "exact"])
+    assert "--fresh-hits needs the estimated map, got --map exact" in capsys.readouterr().err
+    calls.clear()  # --goal-size reaches the generalist's flights, not the thesis scene's
+    sim_to_real.main(["--policies", "thesis", "generalist", "--seeds", "1", "--episodes", "2",
+                      "--out", str(tmp_path), "--map", "estimated", "--goal-size", "1.0", "0.8"])
+    assert "--goal-size" not in calls[0]
+    assert calls[1][calls[1].index("--goal-size"):][:3] == ["--goal-size", "1.0", "0.8"]
+    with pytest.raises(SystemExit):
+        sim_to_real.main(["--goal-size", "9", "9"])
+    assert "--goal-size" in capsys.readouterr().err
 
 
 def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():

@@ -50,6 +50,10 @@ _VERSION = 1
 INPUT_SIZE = (96, 128)
 #: The shipped head (``make arrival-weights``), with its figures in ``arrival.json``.
 DEFAULT_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival.pt"
+#: The head for rooms nobody trained on (``make arrival-rooms-weights``): random layouts' rooms
+#: with the printed 1.0 x 0.8 m board, figures in ``arrival_rooms.json`` (docs/tello.rst, "An
+#: arrival head for rooms it has never seen").
+ROOMS_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival_rooms.pt"
 
 
 class GoalOffsetNet(nn.Module):
@@ -164,7 +168,8 @@ class GoalOffsetEstimator:
 
     @classmethod
     def load(cls, path=None) -> GoalOffsetEstimator:
-        """Loads weights written by :meth:`save` (None: the shipped :data:`DEFAULT_WEIGHTS`).
+        """Loads weights written by :meth:`save` (None: the shipped :data:`DEFAULT_WEIGHTS`;
+        :data:`ROOMS_WEIGHTS` is the shipped head for rooms other than the thesis room).
 
         Raises:
             FileNotFoundError: no such file (naming it and the command that trains one).
