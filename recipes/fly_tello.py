@@ -597,6 +597,12 @@ def summarize(rows, key="success"):
     return {"rate": k / len(vals), "n": len(vals), "ci95": [round(lo, 4), round(hi, 4)]}
 
 
+def ego_map_options(args) -> dict:
+    """The :class:`~torchrl_causal.transforms.EgoMap` options a flight sets (``--map``,
+    ``--fresh-hits``): for the flight's own feature stack and ``--compare-sim``'s."""
+    return {"depth": args.map, **({"fresh_hits": True} if args.fresh_hits else {})}
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(1)
@@ -610,8 +616,7 @@ def main(argv=None) -> dict:
     if uses_map:  # EgoMap reads the depth this flight has (--map)
         ego = cfg.features.get("ego_map")
         cfg.features.ego_map = {**(OmegaConf.to_container(ego) if ego is not None else {}),
-                                "depth": args.map,
-                                **({"fresh_hits": True} if args.fresh_hits else {})}
+                                **ego_map_options(args)}
     real = args.host is not None
     # the emulator's scene and noise draws, and --compare-sim's episodes (--seed: others)
     seed = int(cfg.seed if args.seed is None else args.seed)
@@ -715,8 +720,8 @@ def main(argv=None) -> dict:
         noise = ["env.noise=tello"] if args.noise else []
         if args.compare_perception == "rgb":
             noise += ["features.options.perception=rgb"] + (
-                [f"features.ego_map.depth={args.map}"] if uses_map else []) + (
-                ["++features.ego_map.fresh_hits=true"] if uses_map and args.fresh_hits else [])
+                [f"++features.ego_map.{k}={str(v).lower() if isinstance(v, bool) else v}"
+                 for k, v in ego_map_options(args).items()] if uses_map else [])
         scene = emulated_scene(args, cfg)[0]
         if args.goal_size is not None:  # the emulator's layouts, boards and all
             noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]

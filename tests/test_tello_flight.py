@@ -417,6 +417,31 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
     assert (tmp_path / "episodes.csv").is_file()
 
 
+def test_compare_sim_on_rgb_builds_the_flights_egomap(tmp_path, monkeypatch):
+    """--compare-sim with --compare-perception rgb: DroneNavEnv's reference builds the same
+    EgoMap options as the flight (ego_map_options: --map, --fresh-hits)."""
+    from torchrl_causal import training
+    from torchrl_causal.transforms import EgoMap
+
+    args = fly_tello.parse_args(["--fresh-hits"])
+    assert fly_tello.ego_map_options(args) == {"depth": "estimated", "fresh_hits": True}
+    assert fly_tello.ego_map_options(fly_tello.parse_args(["--map", "exact"])) == {
+        "depth": "exact"}
+    seen = []
+    evaluate = training.evaluate
+
+    def spy(policy, env, *a, **kw):
+        seen.extend((t.depth, t.fresh_hits) for t in env.transform if isinstance(t, EgoMap))
+        return evaluate(policy, env, *a, **kw)
+
+    monkeypatch.setattr(training, "evaluate", spy)
+    summary = fly_tello.main(["--episodes", "1", "--max-steps", "3", "--fresh-hits",
+                              "--compare-sim", "1", "--compare-perception", "rgb",
+                              "--out", str(tmp_path), "--no-video", "--seed", "3"])
+    assert seen == [("estimated", True)]
+    assert summary["dronenav"]["perception"] == "rgb"
+
+
 def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, monkeypatch,
                                                                     capsys):
     """--map reaches fly_tello.py for every seed; a value fly_tello does not take is named."""
