@@ -158,17 +158,21 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--hold-radius", "0"], "--hold-radius must be a distance in [0.05, 1.0] m, got 0"),
     (["--lost-board", "carry", "--final-approach", "none"], "it needs --final-approach"),
     (["--lost-board", "keep"], "invalid choice: 'keep'"),
-    (["--fresh-hits"], "--fresh-hits overrides the log-odds of the estimated map: it needs "
-                       "--map estimated, got --map exact"),
+    (["--fresh-hits", "--map", "exact"], "--fresh-hits overrides the log-odds of the "
+                                         "estimated map: it needs --map estimated, got --map "
+                                         "exact"),
     (["--host", "192.168.10.1", "--goal-size", "1", "0.8", "--dry-run"],
      "the option is the emulator's"),
     (["--layout", "heldout", "--goal-size", "0.1", "0.8"], "--goal-size must be two sizes"),
     (["--goal-size", "1", "0.8"], "--goal-size applies to the emulator's random layouts"),
 ])
-def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys):
+def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, capsys,
+                                                                 tmp_path):
+    out = tmp_path / "flight"  # an option that stopped being refused flies here, not into the run
     with pytest.raises(SystemExit):
-        fly_tello.main(["--run", str(POLICY), *argv])
+        fly_tello.main(["--run", str(POLICY), "--out", str(out), *argv])
     assert message in capsys.readouterr().err
+    assert not (out / "episodes.csv").exists()
 
 
 def test_the_reach_rule_options_build_the_rule():
