@@ -68,12 +68,13 @@ TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reache
 
 def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
         map_depth: str | None = None, compare_perception: str = "sim",
-        fresh_hits: bool = False, goal_size=None) -> dict:
+        fresh_hits: str | None = None, goal_size=None) -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
     perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``,
-    ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``,
+    ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``
+    (``"on"`` / ``"off"``; None: fly_tello's ``auto``),
     ``goal_size`` its ``--goal-size`` (random layouts only).
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
@@ -85,8 +86,8 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
             argv += [flag, str(weights[key])]
     if map_depth is not None:
         argv += ["--map", map_depth]
-    if fresh_hits:
-        argv += ["--fresh-hits"]
+    if fresh_hits is not None:
+        argv += ["--fresh-hits", fresh_hits]
     if goal_size is not None:
         argv += ["--goal-size", *(str(v) for v in goal_size)]
     with contextlib.redirect_stdout(sys.stderr):
@@ -152,9 +153,10 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--map", choices=("exact", "estimated"), default=None,
                    help="fly_tello.py --map: EgoMap's depth model for a policy that reads its "
                         "map (default: fly_tello's auto, estimated on RGB)")
-    p.add_argument("--fresh-hits", action="store_true",
-                   help="fly_tello.py --fresh-hits (needs the estimated map): what the current "
-                        "frame reads is an obstacle for that step")
+    p.add_argument("--fresh-hits", nargs="?", const="on", default=None, choices=("on", "off"),
+                   help="fly_tello.py --fresh-hits on / off (on needs the estimated map): what "
+                        "the current frame reads is an obstacle for that step (default: "
+                        "fly_tello's auto, on with the estimated map; a bare --fresh-hits is on)")
     p.add_argument("--goal-size", type=float, nargs=2, default=None, metavar=("W", "H"),
                    help="fly_tello.py --goal-size for the generalist's random layouts, e.g. "
                         "1.0 0.8, the printed board (the thesis scene keeps its own)")
@@ -164,7 +166,7 @@ def main(argv=None) -> list[dict]:
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
-    if a.fresh_hits and a.map == "exact":
+    if a.fresh_hits == "on" and a.map == "exact":
         p.error("--fresh-hits needs the estimated map, got --map exact")
     if a.goal_size is not None:
         from torchrl_causal.envs.layouts import check_goal_size

@@ -387,12 +387,15 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     assert "--depth-weights" in err and "nope.pt" in err
 
 
-@pytest.mark.parametrize("argv, expected", [([], "estimated"), (["--map", "exact"], "exact"),
-                                            (["--fresh-hits"], "estimated")])
-def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys, argv, expected):
+@pytest.mark.parametrize("argv, expected, fresh", [([], "estimated", True),
+                                                   (["--map", "exact"], "exact", False),
+                                                   (["--fresh-hits", "off"], "estimated", False)])
+def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys, argv, expected,
+                                                  fresh):
     """--map: the generalist's EgoMap trusts every depth reading (exact) or treats the
     depth as an estimate (median column reading, log-odds cells: auto's choice on
-    MonoDepth's depth); --fresh-hits adds what the current frame reads (EgoMap fresh_hits)."""
+    MonoDepth's depth); --fresh-hits (auto: on with the estimated map) adds what the current
+    frame reads (EgoMap fresh_hits)."""
     from torchrl_causal.transforms import EgoMap
 
     assert fly_tello.parse_args(argv).map == expected
@@ -405,6 +408,11 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
     with pytest.raises(SystemExit):
         fly_tello.parse_args(["--perception", "sim", "--fresh-hits"])
     assert "--fresh-hits" in capsys.readouterr().err
+    assert fly_tello.parse_args(["--perception", "sim"]).fresh_hits is False  # auto, exact map
+    assert fly_tello.parse_args(["--fresh-hits", "on"]).fresh_hits is True
+    with pytest.raises(SystemExit):
+        fly_tello.parse_args(["--fresh-hits", "maybe"])
+    assert "--fresh-hits: invalid choice: 'maybe'" in capsys.readouterr().err
     seen = []
     fly = fly_tello.fly
 
@@ -415,7 +423,6 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
     monkeypatch.setattr(fly_tello, "fly", spy)
     summary = fly_tello.main(["--episodes", "1", "--max-steps", "4", *argv,
                               "--out", str(tmp_path), "--no-video", "--seed", "3"])
-    fresh = "--fresh-hits" in argv
     assert seen == [(expected, fresh)] and summary["map"] == expected
     assert summary.get("fresh_hits", False) is fresh
     assert (tmp_path / "episodes.csv").is_file()
@@ -465,11 +472,15 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
                              "--out", str(tmp_path), "--map", "estimated"])
     assert [c[c.index("--map") + 1] for c in calls] == ["estimated", "estimated"]
     assert [f.get("map") for f in figs] == ["estimated", "estimated", None]
-    assert not any("--fresh-hits" in c for c in calls)
+    assert not any("--fresh-hits" in c for c in calls)  # fly_tello's auto
     calls.clear()
     sim_to_real.main(["--policies", "generalist", "--seeds", "1", "--episodes", "2",
                       "--out", str(tmp_path), "--map", "estimated", "--fresh-hits"])
-    assert len(calls) == 1 and "--fresh-hits" in calls[0]
+    assert len(calls) == 1 and calls[0][calls[0].index("--fresh-hits") + 1] == "on"
+    calls.clear()
+    sim_to_real.main(["--policies", "generalist", "--seeds", "1", "--episodes", "2",
+                      "--out", str(tmp_path), "--map", "estimated", "--fresh-hits", "off"])
+    assert calls[0][calls[0].index("--fresh-hits") + 1] == "off"
     with pytest.raises(SystemExit):
         sim_to_real.main(["--map", "auto"])
     assert "--map: invalid choice: 'auto'" in capsys.readouterr().err
