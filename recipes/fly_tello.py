@@ -3,6 +3,8 @@
 ::
 
     python recipes/fly_tello.py --episodes 10          # the shipped generalist, held-out layouts
+    python recipes/fly_tello.py --goal-size 1.0 0.8    # ... with the printed board: the
+                                                       # random-rooms arrival head, as on a real drone
     python recipes/fly_tello.py --run outputs/make_train --episodes 10
     python recipes/fly_tello.py --run outputs/make_train --episodes 10 --compare-sim 10
     python recipes/fly_tello.py --run outputs/make_train --host 192.168.10.1
