@@ -401,8 +401,14 @@ def head_applies(args) -> str | None:
         return "shipped"
     if layout is None:  # a real drone: a room nobody trained on
         return "rooms"
+    from torchrl_causal.perception.arrival import ROOMS_WEIGHTS
+    from torchrl_causal.perception.depth import read_sidecar
+
+    # the board the random-rooms head was trained on (its sidecar: the printed 1.0 x 0.8 m)
+    trained = read_sidecar(ROOMS_WEIGHTS).get("goal_size")
     size = getattr(args, "goal_size", None)
-    return "rooms" if size is not None and tuple(float(v) for v in size) == (1.0, 0.8) else None
+    return "rooms" if size is not None and trained is not None and (
+        [float(v) for v in size] == [float(v) for v in trained]) else None
 
 
 def plane_applies(args) -> bool:
