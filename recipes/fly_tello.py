@@ -198,6 +198,11 @@ def parse_args(argv=None):
                         "(default: the run's seed); another seed flies other episodes")
     p.add_argument("--dry-run", action="store_true", help="print the commands, fly nothing")
     p.add_argument("--no-video", action="store_true")
+    p.add_argument("--log-steps", action="store_true",
+                   help="write steps.jsonl to --out: one line per step with the action, what "
+                        "the camera path measured, the arrival head's estimate and the "
+                        "verdicts; on the emulator also the true offset from the goal point "
+                        "in the board's frame (docs/tello.rst, 'Step by step at the goal')")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the flight already recorded in --out (episodes.csv, "
                         "onboard.mp4, summary.json); without it such an --out is refused")
@@ -331,7 +336,7 @@ def parse_args(argv=None):
 
 
 #: What one flight writes into ``--out`` (``--overwrite`` replaces them).
-FLIGHT_FILES = ("episodes.csv", "onboard.mp4", "summary.json")
+FLIGHT_FILES = ("episodes.csv", "onboard.mp4", "summary.json", "steps.jsonl")
 
 
 #: ``--final-approach auto``'s radius (m), wherever the arrival head flies: chosen on the
@@ -528,6 +533,7 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
     out = Path(args.out)
     csv = EpisodeCSV(out / "episodes.csv", CSV_COLUMNS)
     writer = None if args.no_video else _VideoWriter(out / "onboard.mp4")
+    steps = open(out / "steps.jsonl", "w") if getattr(args, "log_steps", False) else None
     rows, frames = [], 0
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for ep in range(1, args.episodes + 1):
@@ -541,6 +547,9 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
                 nxt = td["next"]
                 total += float(nxt["reward"])
                 length += 1
+                if steps is not None:
+                    steps.write(json.dumps(step_record(ep, length, td, base, emu,
+                                                       base.approaches - approaches0)) + "\n")
                 if writer is not None and base.last_frame is not None:
                     writer.write(base.last_frame)
                 if bool(nxt["done"]):
@@ -571,7 +580,42 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
             print(json.dumps(row), flush=True)
     if writer is not None:
         writer.close()
+    if steps is not None:
+        steps.close()
     return rows
+
+
+def step_record(episode: int, step: int, td, base, emu=None, approaches: int = 0) -> dict:
+    """One line of ``steps.jsonl`` (``--log-steps``): the step's action, what the camera
+    path measured (``in_sight``, ``goal_distance_m``, ``altitude_m``), the arrival head's
+    estimate ``(ahead, lateral, dz)`` (None where it was not asked), the verdicts and the
+    final approaches flown so far in the episode; on the emulator also ``true_offset``,
+    the drone's true ``(ahead, lateral, dz)`` from the goal point in the board's frame,
+    and the simulator's verdict so far (``sim_reached``, ``closest_sim_m``)."""
+    from torchrl_causal.schema import ACTION_NAMES
+
+    nxt = td["next"]
+    est = base.arrival_estimate
+    rec = {"episode": episode, "step": step, "action": ACTION_NAMES[int(td["action"])],
+           "in_sight": bool(nxt["goal_in_sight"]),
+           "goal_distance_m": round(float(nxt["goal_distance"]), 3),
+           "altitude_m": round(float(nxt["altitude"]), 3),
+           "arrival_estimate": None if est is None else [round(v, 3) for v in est],
+           "reached": bool(nxt["reached"]), "crashed": bool(nxt["crashed"]),
+           "out_of_bounds": bool(nxt["out_of_bounds"]), "approaches": int(approaches)}
+    if emu is not None:
+        lay, gt = emu.env.layout, emu.ground_truth()
+        gp, gc = np.asarray(lay.goal_point(), float), np.asarray(lay.goal_center, float)
+        normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+        x, y, z, _ = emu.pose()
+        d = np.array([x, y]) - gp[:2]
+        rec["true_offset"] = [round(float(d @ normal), 3),
+                              round(float(d @ np.array([-normal[1], normal[0]])), 3),
+                              round(float(z - gp[2]), 3)]
+        rec["sim_reached"] = bool(gt["reached"])
+        rec["closest_sim_m"] = (round(float(gt["closest_goal_m"]), 3)
+                                if math.isfinite(gt["closest_goal_m"]) else None)
+    return rec
 
 
 class _VideoWriter:

@@ -19,6 +19,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import av
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -71,10 +72,32 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     with pytest.raises(SystemExit):
         fly_tello.parse_args(["--run", str(POLICY), "--out", str(out)])
     again = fly_tello.main(["--run", str(POLICY), "--episodes", "1", "--no-video",
-                            "--out", str(out), "--overwrite"])
+                            "--out", str(out), "--overwrite", "--log-steps"])
     assert again["episodes"] == 1
+    row = pd.read_csv(out / "episodes.csv").iloc[0]
     assert list(pd.read_csv(out / "episodes.csv")["episode"]) == [1]
     assert not (out / "onboard.mp4").exists()  # the first flight's video went with it
+    # --log-steps: one line per step, the last one carrying the episode's verdicts
+    steps = [json.loads(line) for line in (out / "steps.jsonl").read_text().splitlines()]
+    assert [s["step"] for s in steps] == list(range(1, int(row["length"]) + 1))
+    last = steps[-1]
+    assert last["reached"] == bool(row["success"]) and last["sim_reached"] == bool(row["success_sim"])
+    assert last["closest_sim_m"] == pytest.approx(row["closest_sim_m"], abs=1e-3)
+    assert last["approaches"] == row["approaches"]
+    # the simulator's verdict never goes back; its closest approach only shrinks, and the
+    # drone's true place after each step is no nearer than that closest approach
+    assert all(a["sim_reached"] <= b["sim_reached"] for a, b in zip(steps, steps[1:]))
+    assert all(b["closest_sim_m"] <= a["closest_sim_m"] for a, b in zip(steps, steps[1:]))
+    assert all(np.linalg.norm(s["true_offset"]) >= s["closest_sim_m"] - 1e-3 for s in steps)
+    if last["reached"]:  # the thesis scene's rule fires on the arrival head's estimate
+        assert last["arrival_estimate"] is not None and len(last["arrival_estimate"]) == 3
+    from tests._scripts import load_script  # benchmarks/: the per-step figures of that flight
+
+    arrival_steps = load_script("benchmarks/arrival_steps.py")
+    figs = {f["figure"]: f for f in arrival_steps.main([str(out / "steps.jsonl")])}
+    assert figs["near_goal"]["episodes"] == 1
+    assert figs["missed"]["episodes"] == int(row["success_sim"] and not row["success"])
+    assert figs["false_reached"]["episodes"] == int(row["success"] and not row["success_sim"])
 
 
 def test_bad_options_are_named_before_any_flight(capsys):
