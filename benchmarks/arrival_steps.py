@@ -12,8 +12,9 @@ action, whether the detector saw the board, the arrival head's estimate, the ver
 and the drone's true offset from the goal point in the board's frame) and prints:
 
 * ``near_goal``: the steps that end within 0.2 m of the goal point (the simulator's
-  sphere), and how many of them the detector saw the board on and the head was
-  asked on;
+  sphere), how many of them the detector saw the board on and the head was asked
+  on, and how far the drone was turned from facing the board on the steps with
+  and without the board in sight;
 * ``missed``: the episodes the simulator counts as arrived and ``TelloEnv`` does
   not, with what the camera path did on the step of the pass (the first step whose
   segment entered the sphere) and how the episode ended;
@@ -84,6 +85,13 @@ def figures(episodes: list[list[dict]]) -> list[dict]:
     out = [{"figure": "near_goal", "episodes": len(episodes), "steps": len(near),
             "in_sight": sum(s["in_sight"] for s in near),
             "head_asked": sum(s["arrival_estimate"] is not None for s in near)}]
+    if near and all("true_yaw_off_deg" in s for s in near):  # logs from 2026-11-28 on
+        for seen in (True, False):
+            yaw = [abs(s["true_yaw_off_deg"]) for s in near if s["in_sight"] == seen]
+            out[0][f"yaw_off_deg_{'seen' if seen else 'unseen'}_pct_10_50_90"] = (
+                [round(float(v), 1) for v in np.percentile(yaw, [10, 50, 90])] if yaw else None)
+        out[0]["unseen_turned_over_45_deg"] = sum(
+            not s["in_sight"] and abs(s["true_yaw_off_deg"]) > 45 for s in near)
     missed, false = [], []
     for ep in episodes:
         last = ep[-1]
@@ -92,6 +100,7 @@ def figures(episodes: list[list[dict]]) -> list[dict]:
             s = ep[k]
             missed.append({"in_sight": s["in_sight"], "head_asked": s["arrival_estimate"] is not None,
                            "true_m": round(_norm(s["true_offset"]), 3), "action": s["action"],
+                           "yaw_off_deg": s.get("true_yaw_off_deg"),
                            "steps_after": len(ep) - 1 - k,
                            "ended": "crash" if last["crashed"] else (
                                "out_of_bounds" if last.get("out_of_bounds") else "step_limit")})

@@ -202,7 +202,8 @@ def parse_args(argv=None):
                    help="write steps.jsonl to --out: one line per step with the action, what "
                         "the camera path measured, the arrival head's estimate and the "
                         "verdicts; on the emulator also the true offset from the goal point "
-                        "in the board's frame (docs/tello.rst, 'Step by step at the goal')")
+                        "and yaw in the board's frame (docs/tello.rst, 'Step by step at the "
+                        "goal')")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the flight already recorded in --out (episodes.csv, "
                         "onboard.mp4, summary.json); without it such an --out is refused")
@@ -591,7 +592,8 @@ def step_record(episode: int, step: int, td, base, emu=None, approaches: int = 0
     estimate ``(ahead, lateral, dz)`` (None where it was not asked), the verdicts and the
     final approaches flown so far in the episode; on the emulator also ``true_offset``,
     the drone's true ``(ahead, lateral, dz)`` from the goal point in the board's frame,
-    and the simulator's verdict so far (``sim_reached``, ``closest_sim_m``)."""
+    the drone's yaw off facing the board square on (``true_yaw_off_deg``), and the
+    simulator's verdict so far (``sim_reached``, ``closest_sim_m``)."""
     from torchrl_causal.schema import ACTION_NAMES
 
     nxt = td["next"]
@@ -607,11 +609,13 @@ def step_record(episode: int, step: int, td, base, emu=None, approaches: int = 0
         lay, gt = emu.env.layout, emu.ground_truth()
         gp, gc = np.asarray(lay.goal_point(), float), np.asarray(lay.goal_center, float)
         normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
-        x, y, z, _ = emu.pose()
+        x, y, z, yaw = emu.pose()
         d = np.array([x, y]) - gp[:2]
         rec["true_offset"] = [round(float(d @ normal), 3),
                               round(float(d @ np.array([-normal[1], normal[0]])), 3),
                               round(float(z - gp[2]), 3)]
+        facing = math.degrees(math.atan2(-normal[1], -normal[0]))  # square on to the board
+        rec["true_yaw_off_deg"] = round((float(yaw) - facing + 180.0) % 360.0 - 180.0, 1)
         rec["sim_reached"] = bool(gt["reached"])
         rec["closest_sim_m"] = (round(float(gt["closest_goal_m"]), 3)
                                 if math.isfinite(gt["closest_goal_m"]) else None)

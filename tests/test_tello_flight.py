@@ -89,6 +89,9 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert all(a["sim_reached"] <= b["sim_reached"] for a, b in zip(steps, steps[1:]))
     assert all(b["closest_sim_m"] <= a["closest_sim_m"] for a, b in zip(steps, steps[1:]))
     assert all(np.linalg.norm(s["true_offset"]) >= s["closest_sim_m"] - 1e-3 for s in steps)
+    assert all(-180.0 <= s["true_yaw_off_deg"] <= 180.0 for s in steps)
+    # the thesis scene starts the drone facing the board square on
+    assert abs(steps[0]["true_yaw_off_deg"]) <= 30.0, steps[0]
     if last["reached"]:  # the thesis scene's rule fires on the arrival head's estimate
         assert last["arrival_estimate"] is not None and len(last["arrival_estimate"]) == 3
     from tests._scripts import load_script  # benchmarks/: the per-step figures of that flight
