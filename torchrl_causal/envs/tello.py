@@ -277,9 +277,6 @@ class TelloEnv(EnvBase):
         flying: whether the env believes the drone is in the air.
         last_frame: the last decoded video frame (RGB, full size) observed.
         approaches: how many final approaches (``go`` commands) this env has flown.
-        arrival_estimate: the arrival head's estimate of the last step, ``(ahead,
-            lateral, dz)`` in m from the goal point, or None where the head was not
-            asked (read-only; ``fly_tello.py --log-steps`` records it).
 
     Example:
         >>> import torch
@@ -497,7 +494,8 @@ class TelloEnv(EnvBase):
     @property
     def arrival_estimate(self) -> tuple[float, float, float] | None:
         """The arrival head's ``(ahead, lateral, dz)`` (m, the board's frame, from the goal
-        point) on the last observed frame, or None where it was not asked."""
+        point) on the last observed frame, or None where it was not asked (read-only;
+        ``fly_tello.py --log-steps`` records it)."""
         est = self._prev_offset
         return None if est is None else tuple(float(v) for v in est)
 
