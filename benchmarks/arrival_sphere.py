@@ -9,8 +9,8 @@ point of held-out random rooms (the printed 1.0 x 0.8 m board, 10 frames per roo
 height within 0.08 m of the goal point, yaw within 15 deg of facing the board, roll
 and pitch within 3 deg), each through the Tello camera path (``VideoPath``, 320 x 240
 stream), and measures each with a dry-run :class:`~torchrl_causal.envs.TelloEnv`
-built as ``fly_tello.py`` builds it for such rooms (the shipped detector, MonoDepth and
-random-rooms arrival head; the rule at 0.13 m within 1 m). Prints one JSON object: how
+with what ``fly_tello.py``'s defaults fly in such rooms (the shipped detector, MonoDepth and
+random-rooms arrival head; the rule at 0.13 m within 1 m, written out here). Prints one JSON object: how
 many frames the detector saw the board in, how many MonoDepth put beyond the rule's
 1 m, how many the head was asked on, and the head's error on the distance from the
 goal point (one frame each: ``TelloEnv.measure_frame``, no segment). Results:
@@ -61,8 +61,7 @@ def main(n: int = 120, seed: int = 11) -> dict:
                                   layout_index=int(rng.integers(0, 1_000_000)))
                 env.reset()
                 lay = env.layout
-                gp, gc = np.array(lay.goal_point()), np.array(lay.goal_center)
-                normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+                gp, normal = np.array(lay.goal_point()), lay.goal_normal()[:2]
                 side = np.array([-normal[1], normal[0]])
                 facing = math.degrees(math.atan2(-normal[1], -normal[0]))
             for _ in range(1000):  # inside the sphere, clear of obstacles and the room's edge

@@ -534,7 +534,9 @@ def fly(args, policy, tenv, base, emu=None) -> list[dict]:
     out = Path(args.out)
     csv = EpisodeCSV(out / "episodes.csv", CSV_COLUMNS)
     writer = None if args.no_video else _VideoWriter(out / "onboard.mp4")
-    steps = open(out / "steps.jsonl", "w") if getattr(args, "log_steps", False) else None
+    # line-buffered: the steps flown so far stay on disk if a flight is cut short
+    steps = (open(out / "steps.jsonl", "w", buffering=1) if getattr(args, "log_steps", False)
+             else None)
     rows, frames = [], 0
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for ep in range(1, args.episodes + 1):
@@ -607,8 +609,7 @@ def step_record(episode: int, step: int, td, base, emu=None, approaches: int = 0
            "out_of_bounds": bool(nxt["out_of_bounds"]), "approaches": int(approaches)}
     if emu is not None:
         lay, gt = emu.env.layout, emu.ground_truth()
-        gp, gc = np.asarray(lay.goal_point(), float), np.asarray(lay.goal_center, float)
-        normal = (gp - gc)[:2] / np.linalg.norm((gp - gc)[:2])
+        gp, normal = np.asarray(lay.goal_point(), float), lay.goal_normal()[:2]
         x, y, z, yaw = emu.pose()
         d = np.array([x, y]) - gp[:2]
         rec["true_offset"] = [round(float(d @ normal), 3),
