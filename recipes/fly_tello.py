@@ -185,14 +185,24 @@ def parse_args(argv=None):
     p.add_argument("--hold-radius", type=float, default=None, metavar="M",
                    help="with the arrival head: a board the detector loses is held for one "
                         "step when the head's last estimate put the goal point within M m "
-                        "(default: twice --reach-offset; docs/tello.rst, 'The hold and the "
-                        "threshold')")
-    p.add_argument("--lost-board", choices=("hold", "carry"), default="hold",
+                        "(default: twice --reach-offset, 1.0 with --lost-board ask; "
+                        "docs/tello.rst, 'The hold and the threshold')")
+    p.add_argument("--lost-board", choices=("hold", "carry", "ask"), default="hold",
                    help="with the arrival head: a board the detector has just lost near the "
                         "goal point gives, for one step, the head's reading of the frame "
                         "without it ('hold', default) or the last estimate carried by the "
                         "dead-reckoned move ('carry'; needs the final approach's heading; "
-                        "docs/tello.rst, 'Carrying a lost board')")
+                        "docs/tello.rst, 'Carrying a lost board'); 'ask': a head trained "
+                        "with an in-view output (train_arrival.py --in-view-share) is asked "
+                        "on every frame, detection or not, while it reads the board within "
+                        "--hold-radius (default 1.0 m), and declines frames without it "
+                        "(docs/tello.rst, 'A head that can decline')")
+    p.add_argument("--segment-slack", default="auto", metavar="M",
+                   help="with the arrival head: a step's segment counts only when the head's "
+                        "two estimates lie at most M m farther apart than the drone flew "
+                        "between them, else the step counts at its current estimate (docs/"
+                        f"tello.rst, 'A head that can decline'). 'auto' (default): "
+                        f"{SEGMENT_SLACK} m with --lost-board ask, else none; 'none': off")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -318,7 +328,32 @@ def parse_args(argv=None):
     # resolved to a bool (auto: with the estimated map; docs/tello.rst, "The random-rooms head,
     # shipped")
     a.fresh_hits = a.fresh_hits == "on" or (a.fresh_hits == "auto" and a.map == "estimated")
-    if a.lost_board != "hold" and a.final_approach is None:
+    if a.segment_slack == "auto":
+        a.segment_slack = SEGMENT_SLACK if a.lost_board == "ask" else None
+    elif a.segment_slack == "none":
+        a.segment_slack = None
+    else:
+        try:
+            a.segment_slack = float(a.segment_slack)
+        except ValueError:
+            p.error(f"--segment-slack must be a distance (m), 'auto' or 'none', got "
+                    f"{a.segment_slack!r}")
+        if not 0.0 <= a.segment_slack <= 1.0:
+            p.error(f"--segment-slack must be a distance in [0, 1] m, got {a.segment_slack:g}")
+        if a.arrival_head is None:
+            p.error(f"--segment-slack {a.segment_slack:g} checks the arrival head's segments: "
+                    "it needs the head")
+    if a.lost_board == "ask":
+        if a.arrival_head in (None, "depth"):
+            p.error(f"--lost-board ask asks the arrival head without the detector: it needs a "
+                    f"head weights file with an in-view output, got --arrival-head "
+                    f"{a.arrival_head}")
+        from torchrl_causal.perception.arrival import GoalOffsetEstimator
+
+        if not GoalOffsetEstimator.load(a.arrival_head).in_view:
+            p.error(f"--lost-board ask needs a head trained with an in-view output "
+                    f"(train_arrival.py --in-view-share); {a.arrival_head} has none")
+    elif a.lost_board != "hold" and a.final_approach is None:
         p.error(f"--lost-board {a.lost_board} turns the dead-reckoned move into the board's "
                 "frame with the final approach's heading: it needs --final-approach (and the "
                 "arrival head)")
@@ -343,6 +378,11 @@ FLIGHT_FILES = ("episodes.csv", "onboard.mp4", "summary.json", "steps.jsonl")
 #: ``--final-approach auto``'s radius (m), wherever the arrival head flies: chosen on the
 #: development seeds 101 and 102 (docs/tello.rst, "A final approach").
 FINAL_APPROACH_RADIUS = 0.4
+
+#: ``--segment-slack auto``'s slack (m) with ``--lost-board ask``: about one 90th-percentile
+#: sideways error of the in-view head on its test frames (docs/tello.rst, "A head that can
+#: decline").
+SEGMENT_SLACK = 0.2
 
 #: ``--reach-offset`` of ``--arrival-head auto``: one 90th-percentile range error of the
 #: shipped head inside the goal sphere's 0.2 m (docs/tello.rst, "A learned arrival head").
@@ -513,6 +553,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["final_approach"] = getattr(args, "final_approach", None)
         kw["hold_radius"] = getattr(args, "hold_radius", None)
         kw["lost_board"] = getattr(args, "lost_board", "hold")
+        kw["segment_slack"] = getattr(args, "segment_slack", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -706,6 +747,8 @@ def main(argv=None) -> dict:
         summary["hold_radius"] = args.hold_radius
     if getattr(args, "lost_board", "hold") != "hold":
         summary["lost_board"] = args.lost_board
+    if getattr(args, "segment_slack", None) is not None:
+        summary["segment_slack"] = args.segment_slack
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

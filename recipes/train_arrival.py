@@ -27,27 +27,44 @@ def _share(x: np.ndarray) -> float | None:
     return round(float(x.mean()), 3) if len(x) else None  # None: no such frames
 
 
-def evaluate(est, frames, labels, thresholds=(0.16, 0.18, 0.2, 0.22)) -> dict:
+def evaluate(est, frames, labels, thresholds=(0.13, 0.16, 0.18, 0.2, 0.22),
+             in_view_share: float | None = None) -> dict:
     """Errors of the offsets, and where the rule "estimated 3-D distance <= t" fires
-    inside and outside the 0.2 m goal sphere (the height difference as the sensor gives)."""
-    pred = np.concatenate([est(torch.as_tensor(frames[i:i + 256])).numpy()
-                           for i in range(0, len(frames), 256)])
-    err = np.abs(pred - labels[:, :2])
+    inside and outside the 0.2 m goal sphere (the height difference as the sensor gives).
+    A head with an in-view output fires only where it says the board is in view (p >= 0.5);
+    with ``in_view_share`` (and labels with the board's share, column 4) the offsets'
+    errors are over the frames where the board covers at least that share, and the
+    in-view output's accuracy is reported."""
+    parts = [est.estimate(torch.as_tensor(frames[i:i + 256]))
+             if getattr(est, "in_view", False) else (est(torch.as_tensor(frames[i:i + 256])), None)
+             for i in range(0, len(frames), 256)]
+    pred = np.concatenate([o.numpy() for o, _ in parts])
+    says = (np.concatenate([p.numpy() for _, p in parts]) >= 0.5 if parts[0][1] is not None
+            else np.ones(len(pred), bool))
+    seen = (labels[:, 4] >= in_view_share if in_view_share is not None
+            else np.ones(len(pred), bool))
+    err = np.abs(pred - labels[:, :2])[seen]
     true = np.sqrt((labels[:, :3] ** 2).sum(1))
     est_d = np.sqrt(pred[:, 0] ** 2 + pred[:, 1] ** 2 + labels[:, 2] ** 2)
     inside = true <= 0.2
     rows = []
     for t in thresholds:
-        fire = est_d <= t
+        fire = (est_d <= t) & says
         rows.append({"threshold_m": t, "fire_inside": _share(fire[inside]),
                      "fire_outside": _share(fire[~inside]),
                      "agreement": round(float((fire == inside).mean()), 3)})
-    return {"n": int(len(labels)), "n_inside": int(inside.sum()),
-            "mae_ahead_m": round(float(err[:, 0].mean()), 4),
-            "mae_lateral_m": round(float(err[:, 1].mean()), 4),
-            "p90_ahead_m": round(float(np.quantile(err[:, 0], 0.9)), 4),
-            "p90_lateral_m": round(float(np.quantile(err[:, 1], 0.9)), 4),
-            "rule": rows}
+    out = {"n": int(len(labels)), "n_inside": int(inside.sum()),
+           "mae_ahead_m": round(float(err[:, 0].mean()), 4),
+           "mae_lateral_m": round(float(err[:, 1].mean()), 4),
+           "p90_ahead_m": round(float(np.quantile(err[:, 0], 0.9)), 4),
+           "p90_lateral_m": round(float(np.quantile(err[:, 1], 0.9)), 4),
+           "rule": rows}
+    if in_view_share is not None:
+        out["n_in_view"] = int(seen.sum())
+        if parts[0][1] is not None:
+            out["in_view_accuracy"] = round(float((says == seen).mean()), 3)
+            out["in_view_declined_inside"] = _share(~says[inside])
+    return out
 
 
 #: The near share's poses: the decision region around the 0.2 m goal sphere.
@@ -110,6 +127,12 @@ def main(argv=None) -> dict:
     p.add_argument("--ahead-max", type=float, default=AHEAD_MAX,
                    help="the far share's farthest offset from the goal point along the "
                         "board's normal (m, default 0.8, the shipped head's)")
+    p.add_argument("--in-view-share", type=float, default=None,
+                   help="train an in-view output too: frames where the board covers at least "
+                        "this share of the view count as in view, the offsets are learnt on "
+                        "those only, and the head declines the others (fly it with "
+                        "fly_tello.py --lost-board ask; docs/tello.rst, 'A head that can "
+                        "decline'); default none, the shipped heads")
     p.add_argument("--data", type=Path, default=None,
                    help="an .npz to reuse the rendered frames from (written when absent): "
                         "xtr, ytr, xte, yte")
@@ -131,6 +154,9 @@ def main(argv=None) -> dict:
             raise ValueError(f"Invalid option --{name}={getattr(a, name)}: expected >= 1")
     if not 0.0 <= a.near_share <= 1.0:
         raise ValueError(f"Invalid option --near-share={a.near_share}: expected 0-1")
+    if a.in_view_share is not None and not 0.0 < a.in_view_share < 1.0:
+        raise ValueError(f"Invalid option --in-view-share={a.in_view_share}: expected a share "
+                         f"in (0, 1)")
     if a.yaw_weight < 0:
         raise ValueError(f"Invalid option --yaw-weight={a.yaw_weight}: expected >= 0")
     if not 0.0 < a.yaw_deg <= 90.0:
@@ -158,6 +184,9 @@ def main(argv=None) -> dict:
     if a.data is not None and a.data.is_file():
         d = np.load(a.data)
         xtr, ytr, xte, yte = d["xtr"], d["ytr"], d["xte"], d["yte"]
+        if a.in_view_share is not None and ytr.shape[1] < 5:
+            raise ValueError(f"Invalid option --data={a.data}: its labels have no board share "
+                             f"(rendered before it was recorded); --in-view-share needs it")
         if "rooms" in d and str(d["rooms"]) != a.rooms:
             raise ValueError(f"Invalid option --data={a.data}: its frames are of --rooms "
                              f"{d['rooms']}, not {a.rooms}")
@@ -184,9 +213,11 @@ def main(argv=None) -> dict:
                      poses=np.array(poses))
     t1 = time.time()
     est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, yaw_weight=a.yaw_weight,
-                            progress=not a.no_progress)
+                            in_view_share=a.in_view_share, progress=not a.no_progress)
     t2 = time.time()
-    figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte),
+    share = a.in_view_share
+    figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte, in_view_share=share),
+               "in_view_share": share,
                "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
                "near_share": a.near_share, "near": NEAR, "yaw_deg": a.yaw_deg,
                "lateral": a.lateral, "ahead_max": a.ahead_max,
@@ -199,7 +230,8 @@ def main(argv=None) -> dict:
 
         other = GoalOffsetEstimator.load(DEFAULT_WEIGHTS if a.compare == "shipped"
                                          else a.compare)
-        figures["compare"] = {"weights": a.compare, "test": evaluate(other, xte, yte)}
+        figures["compare"] = {"weights": a.compare,
+                              "test": evaluate(other, xte, yte, in_view_share=share)}
     est.meta = figures
     est.save(a.out)
     a.out.with_suffix(".json").write_text(json.dumps(figures, indent=1) + "\n")  # sidecar

@@ -184,6 +184,12 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--hold-radius", "0"], "--hold-radius must be a distance in [0.05, 1.0] m, got 0"),
     (["--lost-board", "carry", "--final-approach", "none"], "it needs --final-approach"),
     (["--lost-board", "keep"], "invalid choice: 'keep'"),
+    (["--lost-board", "ask", "--arrival-head", "none"], "--lost-board ask asks the arrival head"),
+    (["--segment-slack", "wide"], "--segment-slack must be a distance (m), 'auto' or 'none'"),
+    (["--segment-slack", "2"], "--segment-slack must be a distance in [0, 1] m, got 2"),
+    (["--segment-slack", "0.2", "--arrival-head", "none"], "it needs the head"),
+    (["--lost-board", "ask", "--arrival-head", "rooms", "--reach-offset", "0.13"],
+     "has none"),
     (["--fresh-hits", "--map", "exact"], "--fresh-hits overrides the log-odds of the "
                                          "estimated map: it needs --map estimated, got --map "
                                          "exact"),

@@ -234,14 +234,28 @@ class TelloEnv(EnvBase):
             head on the frame without the detection; ``"carry"`` reads no frame and
             carries the head's last estimate by the drone's dead-reckoned move since,
             turned into the board's frame by ``final_approach``'s fitted heading (needs
-            ``final_approach``; docs/tello.rst, "Carrying a lost board").
+            ``final_approach``; docs/tello.rst, "Carrying a lost board"); ``"ask"``
+            needs a head that says whether the board is in view
+            (:attr:`~torchrl_causal.perception.arrival.GoalOffsetEstimator.in_view`):
+            after the head has read the board within ``hold_radius``, it is asked on
+            every following frame, with or without a detection, for as long as it says
+            the board is in view and within that radius, and a frame it declines gives
+            no estimate (docs/tello.rst, "A head that can decline").
         hold_radius: with ``arrival_head``, how near the goal point (m, the head's
             last estimate with the board in sight) a board the detector then loses is
             still held for one step; None (default): twice the rule's
-            ``max_goal_offset`` (0.4 m at the 0.2 m rule). A lower threshold shrinks
+            ``max_goal_offset`` (0.4 m at the 0.2 m rule), or 1.0 m with
+            ``lost_board="ask"``. A lower threshold shrinks
             that default below a ``final_approach`` radius, so a board lost after an
             approach from farther out is not held (docs/tello.rst, "The hold and the
             threshold").
+        segment_slack: with ``arrival_head``, how much farther apart (m) the head's two
+            estimates that bound a step's segment may lie than the drone flew across the
+            floor between them. Farther apart, they cannot both be right, and a segment
+            drawn between them can sweep through the goal sphere that the drone never
+            entered: the step then counts at its current estimate (with the height
+            sensor's sweep of a climb) alone. None (default): every segment counts
+            (docs/tello.rst, "A head that can decline").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
             default the take-off frame: x forward, y left at take-off), checked on
             the dead-reckoned position before each move; None: no geofence.
@@ -311,6 +325,7 @@ class TelloEnv(EnvBase):
         final_approach: FinalApproach | float | None = None,
         hold_radius: float | None = None,
         lost_board: str = "hold",
+        segment_slack: float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -413,8 +428,19 @@ class TelloEnv(EnvBase):
                                  "it needs arrival_head")
             hold_radius = _num("hold_radius", hold_radius, 0, strict=True)
         self.hold_radius = hold_radius
-        if lost_board not in ("hold", "carry"):
-            raise ValueError(f"lost_board must be 'hold' or 'carry', got {lost_board!r}")
+        if segment_slack is not None:
+            if arrival_head is None:
+                raise ValueError(f"segment_slack={segment_slack!r} checks the arrival head's "
+                                 "segments: it needs arrival_head")
+            segment_slack = _num("segment_slack", segment_slack, 0)
+        self.segment_slack = segment_slack
+        if lost_board not in ("hold", "carry", "ask"):
+            raise ValueError(f"lost_board must be 'hold', 'carry' or 'ask', got {lost_board!r}")
+        if lost_board == "ask" and not getattr(arrival_head, "in_view", False):
+            raise ValueError("lost_board='ask' asks the arrival head without the detector: it "
+                             "needs a head that says whether the board is in view "
+                             "(train_arrival.py --in-view-share), got "
+                             f"{type(arrival_head).__name__}")
         if lost_board == "carry" and final_approach is None:
             raise ValueError("lost_board='carry' turns the dead-reckoned move into the board's "
                              "frame with final_approach's fitted heading: it needs "
@@ -749,8 +775,10 @@ class TelloEnv(EnvBase):
             # board fills the view and the detector loses it; farther out a lost board is
             # one the camera turned or flew away from, and the head, asked on a frame
             # without it, read "at the goal point" 0.5-0.9 m off it (docs/tello.rst)
-            hold = 2 * rule.max_goal_offset if self.hold_radius is None else self.hold_radius
-            held = (prev is not None and self._prev_seen
+            ask = self.lost_board == "ask"  # the head says itself whether it sees the board
+            hold = ((1.0 if ask else 2 * rule.max_goal_offset) if self.hold_radius is None
+                    else self.hold_radius)
+            held = (prev is not None and (self._prev_seen or ask)
                     and float(np.linalg.norm(prev)) <= hold)
             self._prev_seen = False
             dz = (altitude - rule.goal_height) if rule.goal_height is not None else 0.0
@@ -785,6 +813,11 @@ class TelloEnv(EnvBase):
             if plane:
                 if look is None:
                     return None
+            elif ask:
+                look, p_view = self.arrival_head.estimate(np.asarray(frame)[None])
+                if float(p_view[0]) < 0.5:  # the head declines: no board it can read
+                    return None
+                look = np.asarray(look, float).reshape(-1)[:2]
             else:
                 look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
                                   float).reshape(-1)[:2]
@@ -801,6 +834,10 @@ class TelloEnv(EnvBase):
             cur = np.array([look[0], look[1], dz])
             if prev is None and climbed:  # the same place, swept from the last height
                 prev = np.array([look[0], look[1], dz_prev])
+            if prev is not None and self.segment_slack is not None and float(
+                    np.linalg.norm(cur[:2] - prev[:2])) > math.hypot(
+                    *self._last_move[:2]) + self.segment_slack:  # the two cannot both be right
+                prev = np.array([cur[0], cur[1], prev[2]])
             self._prev_offset, self._prev_seen = cur, in_sight
             self._prev_world = self._world.copy()
             return segment_distance(cur if prev is None else prev, cur)

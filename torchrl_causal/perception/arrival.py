@@ -62,30 +62,37 @@ class GoalOffsetNet(nn.Module):
     (no global pooling): where the board's marks are in the image is the sideways offset.
     With ``outputs=3`` a third output is the yaw off the board's normal (rad), an
     auxiliary target (:func:`train_goal_offset`'s ``yaw_weight``) that makes the network
-    tell a turned camera from a shifted one.
+    tell a turned camera from a shifted one. With ``in_view=True`` one more output, the
+    last, is a logit of "the board is in view enough to read the offset from"
+    (:func:`train_goal_offset`'s ``in_view_share``): a head with it can decline a frame,
+    so ``TelloEnv`` may ask it without the detector (``lost_board="ask"``).
 
     Example:
         >>> import torch
         >>> GoalOffsetNet()(torch.zeros(1, 3, 96, 128)).shape
         torch.Size([1, 2])
+        >>> GoalOffsetNet(in_view=True)(torch.zeros(1, 3, 96, 128)).shape
+        torch.Size([1, 3])
     """
 
-    def __init__(self, width: int = 16, outputs: int = 2):
+    def __init__(self, width: int = 16, outputs: int = 2, in_view: bool = False):
         super().__init__()
         if not isinstance(width, int) or width < 4:
             raise ValueError(f"GoalOffsetNet: width must be an int >= 4, got {width!r}")
         if outputs not in (2, 3):
             raise ValueError(f"GoalOffsetNet: outputs must be 2 (ahead, lateral) or 3 (+ yaw), "
                              f"got {outputs!r}")
+        if not isinstance(in_view, bool):
+            raise ValueError(f"GoalOffsetNet: in_view must be a bool, got {in_view!r}")
         w = width
-        self.width, self.outputs = w, outputs
+        self.width, self.outputs, self.in_view = w, outputs, in_view
         self.features = nn.Sequential(
             nn.Conv2d(3, w, 5, 2, 2), nn.ReLU(), nn.Conv2d(w, 2 * w, 3, 2, 1), nn.ReLU(),
             nn.Conv2d(2 * w, 4 * w, 3, 2, 1), nn.ReLU(), nn.Conv2d(4 * w, 4 * w, 3, 2, 1),
             nn.ReLU(), nn.Flatten())
         h, wd = INPUT_SIZE
         self.head = nn.Sequential(nn.Linear(4 * w * (h // 16) * (wd // 16), 64), nn.ReLU(),
-                                  nn.Linear(64, outputs))
+                                  nn.Linear(64, outputs + int(in_view)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(x))
@@ -157,13 +164,26 @@ class GoalOffsetEstimator:
         """``[B, 2]`` offsets (m) of uint8 RGB frames of any 4:3-croppable size."""
         return self.net(_to_input(frames))[:, :2]
 
+    @property
+    def in_view(self) -> bool:
+        """Whether the head also says if the board is in view (:meth:`estimate`)."""
+        return self.net.in_view
+
+    @torch.no_grad()
+    def estimate(self, frames) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``([B, 2]`` offsets (m), ``[B]`` probability that the board is in view enough to
+        read them, or None for a head without that output)."""
+        out = self.net(_to_input(frames))
+        return out[:, :2], (torch.sigmoid(out[:, -1]) if self.net.in_view else None)
+
     def save(self, path) -> Path:
         """Writes the weights (float16), the network's width and :attr:`meta` to ``path``."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         state = {k: v.half() for k, v in self.net.state_dict().items()}
         torch.save({"format": _FORMAT, "version": _VERSION, "width": self.net.width,
-                    "outputs": self.net.outputs, "state_dict": state, "meta": self.meta}, path)
+                    "outputs": self.net.outputs, "in_view": self.net.in_view,
+                    "state_dict": state, "meta": self.meta}, path)
         return path
 
     @classmethod
@@ -186,7 +206,8 @@ class GoalOffsetEstimator:
         if not isinstance(blob, dict) or blob.get("format") != _FORMAT:
             raise RuntimeError(f"{path} is not an arrival head (format "
                                f"{blob.get('format') if isinstance(blob, dict) else None!r})")
-        net = GoalOffsetNet(int(blob["width"]), int(blob.get("outputs", 2)))
+        net = GoalOffsetNet(int(blob["width"]), int(blob.get("outputs", 2)),
+                            bool(blob.get("in_view", False)))
         net.load_state_dict({k: v.float() for k, v in blob["state_dict"].items()})
         return cls(net, blob.get("meta"))
 
@@ -220,9 +241,10 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
         views_per_layout: random layouts only: frames per room (>= 1).
 
     Returns:
-        ``(frames uint8 [n, 96, 128, 3], labels float32 [n, 4])``: ``ahead``,
-        ``lateral``, ``dz`` (m, the drone above the goal point) and the yaw off the board's
-        normal (deg).
+        ``(frames uint8 [n, 96, 128, 3], labels float32 [n, 5])``: ``ahead``,
+        ``lateral``, ``dz`` (m, the drone above the goal point), the yaw off the board's
+        normal (deg) and the share of the stream's frame the board covers (0-1, from the
+        env's segmentation render; occlusion counted).
     """
     from ..envs import DroneNavEnv
     from .dataset import _quat
@@ -277,9 +299,11 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
             env.data.qpos[qa:qa + 3] = (xy[0], xy[1], gp[2] + dz)
             env.data.qpos[qa + 3:qa + 7] = _quat(facing + dyaw, rng.uniform(-3, 3),
                                                  rng.uniform(-3, 3))
-            rgb = np.asarray(env._observe(False, False)["pixels"])
+            obs = env._observe(False, False)
+            rgb = np.asarray(obs["pixels"])
             frames.append(crop_resize(paths[size](rgb), INPUT_SIZE).numpy())
-            labels.append((ahead_m, lat, dz, dyaw))
+            share = float(obs["goal_pixels"][0]) / float(size[0] * size[1])
+            labels.append((ahead_m, lat, dz, dyaw, share))
     finally:
         for env in envs.values():
             env.close()
@@ -290,11 +314,16 @@ def render_offset_views(n: int, *, seed: int, stream_sizes=((720, 960), (240, 32
 
 def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width: int = 16,
                       lr: float = 1e-3, batch_size: int = 64, yaw_weight: float = 0.0,
+                      in_view_share: float | None = None,
                       progress: bool = False) -> GoalOffsetEstimator:
     """Trains a :class:`GoalOffsetNet` on :func:`render_offset_views`' output (smooth-L1 on
     ``(ahead, lateral)``, Adam, horizontal flips with the lateral sign flipped).
     ``yaw_weight > 0`` adds the yaw off the board's normal (``labels[:, 3]``, deg; in rad,
     its sign flipped with the frame) as a third output, its smooth-L1 weighted so.
+    ``in_view_share`` (0-1) adds the in-view output: a frame counts as in view when the
+    board covers at least that share of it (``labels[:, 4]``); the output learns that
+    (binary cross-entropy), and the offsets are learnt on in-view frames only, so the head
+    is not taught to guess where the board cannot be read.
 
     Raises:
         ValueError: frames and labels of other shapes or counts, or a bad option.
@@ -311,12 +340,21 @@ def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width:
     if yaw_weight > 0 and y.shape[1] < 4:
         raise ValueError(f"yaw_weight={yaw_weight} needs labels [N, 4] (ahead, lateral, dz, "
                          f"yaw), got {tuple(y.shape)}")
+    if in_view_share is not None:
+        if not (isinstance(in_view_share, (int, float)) and 0.0 < in_view_share < 1.0):
+            raise ValueError(f"in_view_share must be a share in (0, 1) or None, got "
+                             f"{in_view_share!r}")
+        if y.shape[1] < 5:
+            raise ValueError(f"in_view_share={in_view_share} needs labels [N, 5] (... , the "
+                             f"board's share of the frame), got {tuple(y.shape)}")
     for name, v in (("epochs", epochs), ("batch_size", batch_size)):
         if not isinstance(v, int) or v < 1:
             raise ValueError(f"{name} must be an int >= 1, got {v!r}")
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    net = GoalOffsetNet(width, 3 if yaw_weight > 0 else 2)
+    net = GoalOffsetNet(width, 3 if yaw_weight > 0 else 2, in_view=in_view_share is not None)
+    seen = (y[:, 4] >= in_view_share if in_view_share is not None
+            else torch.ones(len(y), dtype=torch.bool))
     opt = torch.optim.Adam(net.parameters(), lr)
     xf = x.permute(0, 3, 1, 2).float() / 255.0
     target = y[:, :2] if yaw_weight == 0 else torch.cat([y[:, :2], torch.deg2rad(y[:, 3:4])], 1)
@@ -331,11 +369,17 @@ def train_goal_offset(frames, labels, *, epochs: int = 30, seed: int = 0, width:
             xb = torch.where(flip[:, None, None, None], xf[b].flip(-1), xf[b])
             yb = target[b].clone()
             yb[flip, 1:] *= -1  # a mirrored view: lateral (and yaw) change sign
-            out = net(xb)
-            loss = nn.functional.smooth_l1_loss(out[:, :2], yb[:, :2], beta=0.05)
+            out, sb = net(xb), seen[b]
+            n_seen = sb.sum().clamp(min=1)
+            reg = nn.functional.smooth_l1_loss(out[:, :2], yb[:, :2], beta=0.05,
+                                               reduction="none").sum(1)
+            loss = (reg * sb).sum() / (2 * n_seen)  # the mean over the in-view frames
             if yaw_weight > 0:
-                loss = loss + yaw_weight * nn.functional.smooth_l1_loss(out[:, 2], yb[:, 2],
-                                                                        beta=0.05)
+                loss = loss + yaw_weight * (nn.functional.smooth_l1_loss(
+                    out[:, 2], yb[:, 2], beta=0.05, reduction="none") * sb).sum() / n_seen
+            if in_view_share is not None:
+                loss = loss + nn.functional.binary_cross_entropy_with_logits(
+                    out[:, -1], sb.float())
             opt.zero_grad()
             loss.backward()
             opt.step()
