@@ -152,13 +152,20 @@ def parse_args(argv=None):
                    help="the emulator's random layouts: every board of this size (m), e.g. "
                         "1.0 0.8, the field guide's printed board (default: drawn, 0.7-1.2 x "
                         "0.6-0.9; the layouts then differ from the drawn-size ones)")
+    p.add_argument("--board-back", choices=("heliport", "blank"), default="heliport",
+                   help="the emulator: the back of the simulator's board shows the heliport "
+                        "('heliport', default, as every model here was trained on) or is "
+                        "blank, as a printed board's is ('blank'; docs/tello.rst, 'A head that "
+                        "can decline')")
     p.add_argument("--goal-standoff", type=float, default=None,
                    help="the goal point in front of the board's face (m) for --reach-offset "
                         "(default: the emulated layout's; 0.45 on a real drone)")
     p.add_argument("--arrival-head", default="auto",
                    help="the learned arrival head: 'shipped' (make arrival-weights; the "
                         "thesis room), 'rooms' (make arrival-rooms-weights; random rooms with "
-                        "the printed 1.0 x 0.8 m board) or a weights file of "
+                        "the printed 1.0 x 0.8 m board), 'view' (make arrival-view-weights: "
+                        "random rooms, turned up to 80 deg, with an in-view output; flown "
+                        "with --lost-board ask) or a weights file of "
                         "recipes/train_arrival.py; the --reach-offset distance is then read "
                         "from the camera frame by it instead of the depth map's board plane "
                         "(needs --reach-offset). "
@@ -167,7 +174,7 @@ def parse_args(argv=None):
                         "--final-approach). "
                         "'auto' (default), on RGB perception and a 1.0 m board: the shipped "
                         f"head with --reach-offset {HEAD_REACH_OFFSET} on the thesis scene, "
-                        f"'rooms' with --reach-offset {ROOMS_REACH_OFFSET} in any other room "
+                        f"'view' with --reach-offset {ROOMS_REACH_OFFSET} in any other room "
                         "(the emulator's random layouts with --goal-size 1.0 0.8, or a real "
                         "drone with the field guide's printed board); 'depth' with "
                         "--reach-offset "
@@ -187,16 +194,18 @@ def parse_args(argv=None):
                         "step when the head's last estimate put the goal point within M m "
                         "(default: twice --reach-offset, 1.0 with --lost-board ask; "
                         "docs/tello.rst, 'The hold and the threshold')")
-    p.add_argument("--lost-board", choices=("hold", "carry", "ask"), default="hold",
+    p.add_argument("--lost-board", choices=("auto", "hold", "carry", "ask"), default="auto",
                    help="with the arrival head: a board the detector has just lost near the "
                         "goal point gives, for one step, the head's reading of the frame "
-                        "without it ('hold', default) or the last estimate carried by the "
+                        "without it ('hold') or the last estimate carried by the "
                         "dead-reckoned move ('carry'; needs the final approach's heading; "
                         "docs/tello.rst, 'Carrying a lost board'); 'ask': a head trained "
                         "with an in-view output (train_arrival.py --in-view-share) is asked "
                         "on every frame, detection or not, while it reads the board within "
                         "--hold-radius (default 1.0 m), and declines frames without it "
-                        "(docs/tello.rst, 'A head that can decline')")
+                        "(docs/tello.rst, 'A head that can decline'). 'auto' (default): "
+                        "'ask' for a head with an in-view output (--arrival-head view), else "
+                        "'hold'")
     p.add_argument("--segment-slack", default="auto", metavar="M",
                    help="with the arrival head: a step's segment counts only when the head's "
                         "two estimates lie at most M m farther apart than the drone flew "
@@ -261,6 +270,9 @@ def parse_args(argv=None):
         # a second flight would add its rows to the first's and replace its video
         p.error(f"--out {a.out} holds a recorded flight (episodes.csv): give another --out, "
                 "or --overwrite to replace it")
+    if a.board_back != "heliport" and a.host is not None:
+        p.error(f"--board-back {a.board_back}: the option is the emulator's (a real board's "
+                "back is what it is)")
     if a.goal_size is not None and _emulated_layout(a) == "thesis":
         p.error("--goal-size applies to the emulator's random layouts (--layout heldout, "
                 "train or val); the thesis scene's board is 1.0 x 0.8 m")
@@ -281,7 +293,7 @@ def parse_args(argv=None):
     if a.arrival_head == "auto":  # where each head was measured (docs/tello.rst)
         a.arrival_head = head_applies(a) or ("depth" if plane_applies(a) else None)
         if a.arrival_head is not None and a.reach_offset is None:
-            a.reach_offset = {"shipped": HEAD_REACH_OFFSET, "rooms": ROOMS_REACH_OFFSET,
+            a.reach_offset = {"shipped": HEAD_REACH_OFFSET, "view": ROOMS_REACH_OFFSET,
                               "depth": PLANE_REACH_OFFSET}[a.arrival_head]
     elif a.arrival_head == "none":
         a.arrival_head = None
@@ -289,10 +301,15 @@ def parse_args(argv=None):
         if a.reach_offset is None:
             p.error(f"--arrival-head {a.arrival_head!r} needs --reach-offset (e.g. 0.2): the "
                     "head estimates the distance to the goal point that it bounds")
-        if a.arrival_head in ("shipped", "rooms"):
-            from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS, ROOMS_WEIGHTS
+        if a.arrival_head in ("shipped", "rooms", "view"):
+            from torchrl_causal.perception.arrival import (
+                DEFAULT_WEIGHTS,
+                ROOMS_WEIGHTS,
+                VIEW_WEIGHTS,
+            )
 
-            a.arrival_head = str(DEFAULT_WEIGHTS if a.arrival_head == "shipped" else ROOMS_WEIGHTS)
+            a.arrival_head = str({"shipped": DEFAULT_WEIGHTS, "rooms": ROOMS_WEIGHTS,
+                                  "view": VIEW_WEIGHTS}[a.arrival_head])
         if a.arrival_head != "depth" and not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
     if a.arrival_fusion and a.arrival_head is None:
@@ -328,6 +345,13 @@ def parse_args(argv=None):
     # resolved to a bool (auto: with the estimated map; docs/tello.rst, "The random-rooms head,
     # shipped")
     a.fresh_hits = a.fresh_hits == "on" or (a.fresh_hits == "auto" and a.map == "estimated")
+    if a.lost_board == "auto":  # ask a head that can decline; hold the board for the others
+        a.lost_board = "hold"
+        if a.arrival_head not in (None, "depth"):
+            from torchrl_causal.perception.arrival import GoalOffsetEstimator
+
+            if GoalOffsetEstimator.load(a.arrival_head).in_view:
+                a.lost_board = "ask"
     if a.segment_slack == "auto":
         a.segment_slack = SEGMENT_SLACK if a.lost_board == "ask" else None
     elif a.segment_slack == "none":
@@ -390,7 +414,8 @@ HEAD_REACH_OFFSET = 0.15
 
 #: ``--reach-offset`` of ``--arrival-head auto`` with the random-rooms head: its 90th-percentile
 #: range error on held-out rooms (0.066 m) inside the goal sphere's 0.2 m, the shipped head's
-#: rule (docs/tello.rst, "An arrival head for rooms it has never seen").
+#: rule (docs/tello.rst, "An arrival head for rooms it has never seen"); the head that can
+#: decline, ``auto``'s choice there since 2026-11-29, was flown at the same value.
 ROOMS_REACH_OFFSET = 0.13
 
 #: ``--reach-offset`` of ``--arrival-head auto`` where it reads the board plane: the goal
@@ -408,6 +433,8 @@ def emulated_scene(args, cfg) -> tuple[str, dict]:
     opts = dict(ru.SCENES[scene])
     if args.goal_size is not None:
         opts["goal_size"] = tuple(args.goal_size)
+    if getattr(args, "board_back", "heliport") != "heliport":
+        opts["board_back"] = args.board_back
     return scene, opts
 
 
@@ -437,23 +464,25 @@ def head_applies(args) -> str | None:
     """Which learned head ``--arrival-head auto`` flies, if any: on RGB perception (the head
     replaces MonoDepth's reading of a board that fills the view) and the 1.0 x 0.8 m board the
     heads were trained on, ``"shipped"`` (the thesis room's) on the emulated thesis scene and
-    ``"rooms"`` (random rooms') in any other room: the emulator's random layouts with
-    ``--goal-size 1.0 0.8``, or a real drone with the field guide's printed board
-    (``--board-width`` unset or 1.0)."""
+    ``"view"`` (random rooms', with the in-view output; flown with ``--lost-board ask``) in
+    any other room: the emulator's random layouts with ``--goal-size 1.0 0.8``, or a real
+    drone with the field guide's printed board (``--board-width`` unset or 1.0). It replaced
+    ``"rooms"`` there on 2026-11-29 (agreement 185 against 178 of 200 emulated episodes;
+    docs/tello.rst, "A head that can decline")."""
     if args.perception != "rgb" or args.board_width not in (None, 1.0):
         return None
     layout = _emulated_layout(args)
     if layout == "thesis":
         return "shipped"
     if layout is None:  # a real drone: a room nobody trained on
-        return "rooms"
-    from torchrl_causal.perception.arrival import ROOMS_WEIGHTS
+        return "view"
+    from torchrl_causal.perception.arrival import VIEW_WEIGHTS
     from torchrl_causal.perception.depth import read_sidecar
 
-    # the board the random-rooms head was trained on (its sidecar: the printed 1.0 x 0.8 m)
-    trained = read_sidecar(ROOMS_WEIGHTS).get("goal_size")
+    # the board the head was trained on (its sidecar: the printed 1.0 x 0.8 m)
+    trained = read_sidecar(VIEW_WEIGHTS).get("goal_size")
     size = getattr(args, "goal_size", None)
-    return "rooms" if size is not None and trained is not None and (
+    return "view" if size is not None and trained is not None and (
         [float(v) for v in size] == [float(v) for v in trained]) else None
 
 
@@ -778,6 +807,8 @@ def main(argv=None) -> dict:
         summary["layout"] = scene
         if args.goal_size is not None:
             summary["goal_size"] = list(args.goal_size)
+        if args.board_back != "heliport":
+            summary["board_back"] = args.board_back
         noise = NOISE if args.noise else {}
         summary["seed"] = seed
         with TelloEmulator(env_options=dict(layout_opts, seed=seed, **noise),
@@ -831,6 +862,8 @@ def main(argv=None) -> dict:
         scene = emulated_scene(args, cfg)[0]
         if args.goal_size is not None:  # the emulator's layouts, boards and all
             noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]
+        if getattr(args, "board_back", "heliport") != "heliport":
+            noise += [f"++env.options.board_back={args.board_back}"]
         policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
         # the emulator's env draws the same layouts and noise from --seed, but it resets
         # once when it starts: DroneNavEnv's first episode is that reset's, dropped

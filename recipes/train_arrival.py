@@ -111,6 +111,9 @@ def main(argv=None) -> dict:
     p.add_argument("--test", type=int, default=600, help="test frames (another seed)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--seed", type=int, default=1, help="seed of the training frames")
+    p.add_argument("--width", type=int, default=16,
+                   help="the network's first layer's channels (default 16, the shipped "
+                        "heads'; the in-view head over wider poses uses 32)")
     p.add_argument("--near-share", type=float, default=0.5,
                    help="share of the frames drawn near the goal point (ahead -0.35..0.35 m, "
                         "up to 0.35 m sideways), the rest over the whole range (default 0.5)")
@@ -149,6 +152,8 @@ def main(argv=None) -> dict:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
+    if a.width < 4:
+        raise ValueError(f"Invalid option --width={a.width}: expected >= 4")
     for name in ("train", "test", "epochs"):
         if getattr(a, name) < 1:
             raise ValueError(f"Invalid option --{name}={getattr(a, name)}: expected >= 1")
@@ -212,13 +217,14 @@ def main(argv=None) -> dict:
             np.savez(a.data, xtr=xtr, ytr=ytr, xte=xte, yte=yte, rooms=a.rooms,
                      poses=np.array(poses))
     t1 = time.time()
-    est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, yaw_weight=a.yaw_weight,
-                            in_view_share=a.in_view_share, progress=not a.no_progress)
+    est = train_goal_offset(xtr, ytr, epochs=a.epochs, seed=0, width=a.width,
+                            yaw_weight=a.yaw_weight, in_view_share=a.in_view_share,
+                            progress=not a.no_progress)
     t2 = time.time()
     share = a.in_view_share
     figures = {"figure": "arrival_head", "test": evaluate(est, xte, yte, in_view_share=share),
                "in_view_share": share,
-               "train_frames": a.train, "epochs": a.epochs, "seed": a.seed,
+               "train_frames": a.train, "epochs": a.epochs, "seed": a.seed, "width": a.width,
                "near_share": a.near_share, "near": NEAR, "yaw_deg": a.yaw_deg,
                "lateral": a.lateral, "ahead_max": a.ahead_max,
                "yaw_weight": a.yaw_weight, "rooms": a.rooms,

@@ -176,3 +176,36 @@ def test_nearest_surface_names_what_a_point_touches():
     assert open_lay.nearest_surface((-1.4, 0.0, 1.2))[0] not in ("wall", "ceiling")
     # inside the board: distance 0
     assert lay.nearest_surface((3.0, 0.0, 1.0)) == ("board", 0.0)
+
+
+def test_a_blank_board_back_hides_the_heliport_from_behind():
+    """``board_back="blank"``: seen from 0.45 m behind the board (the mirror image of the
+    goal point) the heliport is gone -- no goal pixels, a near-uniform frame --, while the
+    view from the goal point is the same render as with the default textured back."""
+    import math
+
+    from torchrl_causal.envs import DroneNavEnv
+    from torchrl_causal.perception.dataset import _quat
+
+    views = {}
+    for back in ("heliport", "blank"):
+        env = DroneNavEnv("random", split="heldout", layout_index=5, goal_size=(1.0, 0.8),
+                          image_size=(60, 80), seed=0, board_back=back)
+        env.reset()
+        lay, qa = env.layout, env.ids.qpos_adr
+        n = np.asarray(lay.goal_normal())[:2] / np.linalg.norm(np.asarray(lay.goal_normal())[:2])
+        for side in (1, -1):  # in front (the goal point), behind
+            xy = np.asarray(lay.goal_center)[:2] + side * 0.45 * n
+            env.data.qpos[qa:qa + 3] = (xy[0], xy[1], lay.goal_point()[2])
+            env.data.qpos[qa + 3:qa + 7] = _quat(math.degrees(math.atan2(-side * n[1],
+                                                                         -side * n[0])), 0, 0)
+            obs = env._observe(False, False)
+            views[back, side] = (int(obs["goal_pixels"][0]),
+                                 np.asarray(obs["pixels"]).astype(float))
+        env.close()
+    assert views["heliport", 1][0] == views["blank", 1][0] == 60 * 80
+    np.testing.assert_array_equal(views["heliport", 1][1], views["blank", 1][1])
+    assert views["heliport", -1][0] == 60 * 80 and views["heliport", -1][1].std() > 30
+    assert views["blank", -1][0] == 0 and views["blank", -1][1].std() < 10
+    with pytest.raises(ValueError, match="board_back must be 'heliport' or 'blank', got 'x'"):
+        DroneNavEnv("random", board_back="x")

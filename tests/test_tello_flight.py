@@ -185,6 +185,9 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--lost-board", "carry", "--final-approach", "none"], "it needs --final-approach"),
     (["--lost-board", "keep"], "invalid choice: 'keep'"),
     (["--lost-board", "ask", "--arrival-head", "none"], "--lost-board ask asks the arrival head"),
+    (["--host", "192.168.10.1", "--board-back", "blank", "--dry-run"],
+     "--board-back blank: the option is the emulator's"),
+    (["--board-back", "plain"], "invalid choice: 'plain'"),
     (["--segment-slack", "wide"], "--segment-slack must be a distance (m), 'auto' or 'none'"),
     (["--segment-slack", "2"], "--segment-slack must be a distance in [0, 1] m, got 2"),
     (["--segment-slack", "0.2", "--arrival-head", "none"], "it needs the head"),
@@ -207,6 +210,29 @@ def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, 
     assert not (out / "episodes.csv").exists()
 
 
+def test_a_head_that_can_decline_is_asked_by_default():
+    """``--arrival-head view`` (a head with an in-view output): ``--lost-board auto`` asks it
+    without the detector and ``--segment-slack auto`` checks its segments; the other heads
+    keep the one-step hold and every segment."""
+    from torchrl_causal.perception.arrival import ROOMS_WEIGHTS, VIEW_WEIGHTS
+
+    common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
+              "--reach-offset", "0.13"]
+    view = fly_tello.parse_args([*common, "--arrival-head", "view"])
+    assert (view.arrival_head, view.lost_board, view.segment_slack) == (
+        str(VIEW_WEIGHTS), "ask", fly_tello.SEGMENT_SLACK)
+    rooms = fly_tello.parse_args([*common, "--arrival-head", "rooms"])
+    assert (rooms.arrival_head, rooms.lost_board, rooms.segment_slack) == (
+        str(ROOMS_WEIGHTS), "hold", None)
+    off = fly_tello.parse_args([*common, "--arrival-head", "view", "--segment-slack", "none",
+                                "--lost-board", "hold"])
+    assert (off.lost_board, off.segment_slack) == ("hold", None)
+    # --board-back blank: the emulator's DroneNavEnv gets the printed board's blank back
+    blank = fly_tello.parse_args([*common, "--board-back", "blank"])
+    assert fly_tello.emulated_scene(blank, None)[1]["board_back"] == "blank"
+    assert "board_back" not in fly_tello.emulated_scene(view, None)[1]
+
+
 def test_the_reach_rule_options_build_the_rule():
     args = fly_tello.parse_args(["--run", str(POLICY), "--reach-distance", "0.45",
                                  "--reach-height", "0.12", "--reach-full-width"])
@@ -227,9 +253,10 @@ def test_the_reach_rule_options_build_the_rule():
 def test_the_arrival_head_is_the_default_where_it_was_measured():
     """--arrival-head auto, on RGB perception and the 1.0 x 0.8 m board: the shipped
     thesis-room head (offset <= 0.15 m, range bound 1.0 m) on the thesis scene, the shipped
-    random-rooms head (offset <= 0.13 m) in other rooms -- a real drone's, the emulator's
-    random layouts with the printed board --, and the depth map's rule elsewhere."""
-    from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS, ROOMS_WEIGHTS
+    head that can decline (offset <= 0.13 m, asked with --lost-board ask) in other rooms -- a
+    real drone's, the emulator's random layouts with the printed board --, and the depth map's
+    rule elsewhere."""
+    from torchrl_causal.perception.arrival import DEFAULT_WEIGHTS, ROOMS_WEIGHTS, VIEW_WEIGHTS
 
     thesis = fly_tello.parse_args(["--run", str(POLICY)])
     assert thesis.arrival_head == str(DEFAULT_WEIGHTS)
@@ -239,10 +266,11 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
     assert fly_tello.parse_args(["--run", str(POLICY), "--reach-offset", "0.18"]
                                 ).reach_rule.max_goal_offset == 0.18  # the user's value wins
     real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])
-    assert real.arrival_head == str(ROOMS_WEIGHTS)
+    assert real.arrival_head == str(VIEW_WEIGHTS) and real.lost_board == "ask"
     assert real.reach_rule.max_goal_offset == fly_tello.ROOMS_REACH_OFFSET == 0.13
     rooms = fly_tello.parse_args(["--goal-size", "1.0", "0.8"])  # the generalist, printed board
-    assert rooms.arrival_head == str(ROOMS_WEIGHTS) and rooms.final_approach == 0.4
+    assert rooms.arrival_head == str(VIEW_WEIGHTS) and rooms.final_approach == 0.4
+    assert rooms.segment_slack == fly_tello.SEGMENT_SLACK
     assert (rooms.reach_rule.max_goal_offset, rooms.reach_rule.board_width) == (0.13, 1.0)
     assert fly_tello.parse_args(["--arrival-head", "rooms", "--reach-offset", "0.2"]
                                 ).arrival_head == str(ROOMS_WEIGHTS)

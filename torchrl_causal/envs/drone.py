@@ -114,6 +114,10 @@ class DroneNavEnv(EnvBase):
         goal_size: random layouts only: ``(width, height)`` (m) of every goal
             board, e.g. the printed board of a real flight, instead of a drawn
             size (``RandomLayoutGenerator(goal_size=)``). ``None``: drawn.
+        board_back: ``"heliport"`` (default: the back of the board shows the
+            heliport, as in every render the shipped models were trained on) or
+            ``"blank"`` (a printed board's plain back;
+            :func:`~torchrl_causal.envs.scene.build_model`).
         execution: ``"kinematic"`` or ``"physics"`` (see
             :mod:`torchrl_causal.envs.control`).
         step_size: translation per move action (m).
@@ -166,6 +170,7 @@ class DroneNavEnv(EnvBase):
         layout_index: int | None = None,
         n_layouts: int | None = None,
         goal_size: tuple[float, float] | None = None,
+        board_back: str = "heliport",
         execution: str = "kinematic",
         step_size: float = 0.25,
         turn_deg: float = 15.0,
@@ -240,6 +245,8 @@ class DroneNavEnv(EnvBase):
         if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f"seed must be None or an int >= 0, got {seed!r}")
         goal_size = check_goal_size(goal_size)
+        if board_back not in ("heliport", "blank"):
+            raise ValueError(f"board_back must be 'heliport' or 'blank', got {board_back!r}")
         if goal_size is not None and layout != "random":
             raise ValueError(f"goal_size applies to layout='random' only, got layout={layout!r} "
                              f"with goal_size={goal_size!r}")
@@ -247,6 +254,7 @@ class DroneNavEnv(EnvBase):
         super().__init__(device=device if device is not None else "cpu", batch_size=torch.Size([]))
         self._to_device = self.device.type != "cpu"
         self.layout_option = layout
+        self.board_back = board_back
         self.split = split
         self.execution = execution
         self.step_size = float(step_size)
@@ -342,6 +350,7 @@ class DroneNavEnv(EnvBase):
             fov_deg=self.fov_deg,
             max_depth=self.max_depth,
             timestep=self.physics_timestep,
+            board_back=self.board_back,
         )
         self.data = mujoco.MjData(self.model)
         self.layout = layout

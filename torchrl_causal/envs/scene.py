@@ -202,6 +202,7 @@ def build_model(
     fov_deg: float = 60.0,
     max_depth: float = 10.0,
     timestep: float = 0.02,
+    board_back: str = "heliport",
 ) -> tuple[mujoco.MjModel, SceneIds]:
     """Compiles ``layout`` into an ``MjModel``.
 
@@ -212,6 +213,10 @@ def build_model(
         fov_deg: vertical field of view of the camera (deg).
         max_depth: far range of interest (m); the far clipping plane is beyond it.
         timestep: physics time step (s).
+        board_back: ``"heliport"`` (default: the board is one textured box, its back shows
+            the heliport too, as every policy and perception model here was trained on) or
+            ``"blank"``: a plain grey sheet covers the back, as on a printed board (not part
+            of the goal's segmentation; docs/tello.rst, "A head that can decline").
 
     Returns:
         ``(model, ids)``.
@@ -302,6 +307,15 @@ def build_model(
         size=[gt / 2, gw / 2, gh / 2], pos=list(layout.goal_center), quat=gquat,
         material="helipad_mat",
     )
+    if board_back not in ("heliport", "blank"):
+        raise ValueError(f"board_back must be 'heliport' or 'blank', got {board_back!r}")
+    if board_back == "blank":  # a 1 mm sheet just behind the back face, a little larger
+        sheet = np.asarray(layout.goal_center) - layout.goal_normal() * (gt / 2 + 0.0015)
+        wb.add_geom(
+            name="goal_back", type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[0.0005, gw / 2 + 0.002, gh / 2 + 0.002], pos=list(sheet), quat=gquat,
+            rgba=[0.62, 0.6, 0.56, 1.0],
+        )
     bottom = layout.goal_center[2] - gh / 2
     if bottom > 0.05:
         back = np.asarray(layout.goal_center) - layout.goal_normal() * (gt / 2 + 0.03)

@@ -54,6 +54,11 @@ DEFAULT_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival.p
 #: with the printed 1.0 x 0.8 m board, figures in ``arrival_rooms.json`` (docs/tello.rst, "An
 #: arrival head for rooms it has never seen").
 ROOMS_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival_rooms.pt"
+#: The head that can decline (``make arrival-view-weights``): random rooms, the camera turned up
+#: to 80 deg and up to 1.2 m beside the goal point, with an in-view output, figures in
+#: ``arrival_view.json`` (docs/tello.rst, "A head that can decline"; ``fly_tello.py
+#: --arrival-head view``, asked with ``lost_board="ask"``).
+VIEW_WEIGHTS: Path = Path(__file__).resolve().parent / "weights" / "arrival_view.pt"
 
 
 class GoalOffsetNet(nn.Module):
