@@ -321,16 +321,10 @@ def parse_args(argv=None):
                     "the head (--arrival-head shipped or a weights file; 'auto' chose none here)")
         if not 0.05 <= a.hold_radius <= 1.0:
             p.error(f"--hold-radius must be a distance in [0.05, 1.0] m, got {a.hold_radius:g}")
-    if a.final_approach == "auto":  # measured with the head (docs/tello.rst)
-        a.final_approach = FINAL_APPROACH_RADIUS if a.arrival_head is not None else None
-    elif a.final_approach == "none":
-        a.final_approach = None
-    else:
-        try:
-            a.final_approach = float(a.final_approach)
-        except ValueError:
-            p.error(f"--final-approach must be a radius (m), 'auto' or 'none', got "
-                    f"{a.final_approach!r}")
+    # measured with the head (docs/tello.rst)
+    a.final_approach = _auto_distance(
+        p, "--final-approach", "radius", a.final_approach,
+        FINAL_APPROACH_RADIUS if a.arrival_head is not None else None)
     if a.final_approach is not None:
         if a.arrival_head is None:
             p.error(f"--final-approach {a.final_approach:g} flies to the arrival head's "
@@ -352,16 +346,10 @@ def parse_args(argv=None):
 
             if GoalOffsetEstimator.load(a.arrival_head).in_view:
                 a.lost_board = "ask"
-    if a.segment_slack == "auto":
-        a.segment_slack = SEGMENT_SLACK if a.lost_board == "ask" else None
-    elif a.segment_slack == "none":
-        a.segment_slack = None
-    else:
-        try:
-            a.segment_slack = float(a.segment_slack)
-        except ValueError:
-            p.error(f"--segment-slack must be a distance (m), 'auto' or 'none', got "
-                    f"{a.segment_slack!r}")
+    explicit = a.segment_slack not in ("auto", "none")
+    a.segment_slack = _auto_distance(p, "--segment-slack", "distance", a.segment_slack,
+                                     SEGMENT_SLACK if a.lost_board == "ask" else None)
+    if explicit:
         if not 0.0 <= a.segment_slack <= 1.0:
             p.error(f"--segment-slack must be a distance in [0, 1] m, got {a.segment_slack:g}")
         if a.arrival_head is None:
@@ -458,6 +446,18 @@ def full_width_applies(args) -> bool:
     and the arrival head)."""
     layout = _emulated_layout(args)
     return layout is not None and layout != "thesis" and args.arrival_head is None
+
+
+def _auto_distance(p, flag: str, what: str, value: str, auto: float | None) -> float | None:
+    """An option that takes a length (m), ``auto`` (``auto``'s value, or None) or ``none``."""
+    if value == "auto":
+        return auto
+    if value == "none":
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        p.error(f"{flag} must be a {what} (m), 'auto' or 'none', got {value!r}")
 
 
 def head_applies(args) -> str | None:
