@@ -212,6 +212,12 @@ def parse_args(argv=None):
                         "between them, else the step counts at its current estimate (docs/"
                         f"tello.rst, 'A head that can decline'). 'auto' (default): "
                         f"{SEGMENT_SLACK} m with --lost-board ask, else none; 'none': off")
+    p.add_argument("--height-margin", type=float, default=None, metavar="M",
+                   help="with the arrival head: --reach-offset bounds the head's horizontal "
+                        "distance, and M m are added back for the height sensor's, so a step "
+                        "counts when sqrt((h + M)^2 + dz^2) - M <= --reach-offset (e.g. 0.07 "
+                        "with 0.13: the simulator's 0.2 m sphere in height; docs/tello.rst, 'A "
+                        "head that can decline'); default none")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -355,6 +361,12 @@ def parse_args(argv=None):
         if a.arrival_head is None:
             p.error(f"--segment-slack {a.segment_slack:g} checks the arrival head's segments: "
                     "it needs the head")
+    if a.height_margin is not None:
+        if a.arrival_head in (None, "depth"):
+            p.error(f"--height-margin {a.height_margin:g} widens the learned arrival head's rule: "
+                    "it needs the head")
+        if not 0.0 <= a.height_margin <= 0.5:
+            p.error(f"--height-margin must be a distance in [0, 0.5] m, got {a.height_margin:g}")
     if a.lost_board == "ask":
         if a.arrival_head in (None, "depth"):
             p.error(f"--lost-board ask asks the arrival head without the detector: it needs a "
@@ -583,6 +595,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["hold_radius"] = getattr(args, "hold_radius", None)
         kw["lost_board"] = getattr(args, "lost_board", "hold")
         kw["segment_slack"] = getattr(args, "segment_slack", None)
+        kw["height_margin"] = getattr(args, "height_margin", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -778,6 +791,8 @@ def main(argv=None) -> dict:
         summary["lost_board"] = args.lost_board
     if getattr(args, "segment_slack", None) is not None:
         summary["segment_slack"] = args.segment_slack
+    if getattr(args, "height_margin", None) is not None:
+        summary["height_margin"] = args.height_margin
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

@@ -322,6 +322,23 @@ def test_tello_env_asks_a_head_that_can_decline():
     with pytest.raises(ValueError, match="segment_slack must be a finite number >= 0"):
         TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
                  reach_rule=rule, arrival_head=Scripted([]), segment_slack=-1.0)
+    # height_margin: the rule's 0.13 m bounds the head's horizontal distance; 0.07 m is added
+    # back for the height sensor's, so a pass 0.17 m above the goal point (inside the
+    # simulator's 0.2 m sphere) is asked and counts; on the floor nothing changes
+    hrule = ReachRule(max_distance=1.0, max_goal_offset=0.13, goal_height=1.0)
+    for margin, alt, expected in ((None, 1.17, 0.17), (0.07, 1.17, np.hypot(0.07, 0.17) - 0.07),
+                                  (0.07, 1.0, 0.1), (0.07, 1.25, 0.25)):
+        head = Scripted([(0.1 if alt == 1.0 else 0.0, 0.0, 0.9)])
+        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                       reach_rule=hrule, arrival_head=head, lost_board="ask",
+                       height_margin=margin)
+        got = env._goal_offset(True, dmap, box, alt, frame, 0.6)
+        assert got == pytest.approx(expected), (margin, alt)
+        assert head.calls == (0 if expected in (0.17, 0.25) else 1)
+        env.close()
+    with pytest.raises(ValueError, match="height_margin=0.07 widens the arrival head's rule"):
+        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                 reach_rule=rule, height_margin=0.07)
     real = GoalOffsetEstimator(GoalOffsetNet(8, in_view=True))
     TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
              reach_rule=rule, arrival_head=real, lost_board="ask").close()

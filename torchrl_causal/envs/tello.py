@@ -256,6 +256,14 @@ class TelloEnv(EnvBase):
             entered: the step then counts at its current estimate (with the height
             sensor's sweep of a climb) alone. None (default): every segment counts
             (docs/tello.rst, "A head that can decline").
+        height_margin: with ``arrival_head``, keep the simulator's sphere for the height:
+            the rule's ``max_goal_offset`` is then the head's horizontal bound with this
+            margin (m) added back for the height sensor, so a step counts when, along its
+            segment, ``sqrt((h + margin)^2 + dz^2) - margin <= max_goal_offset`` (``h``: the
+            head's horizontal distance, ``dz``: the height sensor's), and the head is asked
+            while ``|dz| <= max_goal_offset + margin``. None (default): the 3-D distance
+            with ``dz`` is bounded by ``max_goal_offset`` itself (docs/tello.rst, "A head
+            that can decline").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
             default the take-off frame: x forward, y left at take-off), checked on
             the dead-reckoned position before each move; None: no geofence.
@@ -326,6 +334,7 @@ class TelloEnv(EnvBase):
         hold_radius: float | None = None,
         lost_board: str = "hold",
         segment_slack: float | None = None,
+        height_margin: float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -434,6 +443,12 @@ class TelloEnv(EnvBase):
                                  "segments: it needs arrival_head")
             segment_slack = _num("segment_slack", segment_slack, 0)
         self.segment_slack = segment_slack
+        if height_margin is not None:
+            if arrival_head is None:
+                raise ValueError(f"height_margin={height_margin!r} widens the arrival head's "
+                                 "rule: it needs arrival_head")
+            height_margin = _num("height_margin", height_margin, 0)
+        self.height_margin = height_margin
         if lost_board not in ("hold", "carry", "ask"):
             raise ValueError(f"lost_board must be 'hold', 'carry' or 'ask', got {lost_board!r}")
         if lost_board == "ask" and not getattr(arrival_head, "in_view", False):
@@ -808,7 +823,8 @@ class TelloEnv(EnvBase):
             nearest = abs(dz)
             if climbed:
                 nearest = 0.0 if dz_prev * dz <= 0 else min(abs(dz_prev), abs(dz))
-            if nearest > rule.max_goal_offset:  # the height sensor alone puts it outside
+            margin = self.height_margin or 0.0
+            if nearest > rule.max_goal_offset + margin:  # the height sensor alone: outside
                 return nearest
             if plane:
                 if look is None:
@@ -840,6 +856,11 @@ class TelloEnv(EnvBase):
                 prev = np.array([cur[0], cur[1], prev[2]])
             self._prev_offset, self._prev_seen = cur, in_sight
             self._prev_world = self._world.copy()
+            if margin:  # the margin for the head's horizontal error only, along the segment
+                a = cur if prev is None else prev
+                pts = a[None] + np.linspace(0.0, 1.0, 41)[:, None] * (cur - a)[None]
+                return float((np.sqrt((np.hypot(pts[:, 0], pts[:, 1]) + margin) ** 2
+                                      + pts[:, 2] ** 2) - margin).min())
             return segment_distance(cur if prev is None else prev, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
