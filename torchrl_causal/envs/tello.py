@@ -437,18 +437,15 @@ class TelloEnv(EnvBase):
                                  "it needs arrival_head")
             hold_radius = _num("hold_radius", hold_radius, 0, strict=True)
         self.hold_radius = hold_radius
-        if segment_slack is not None:
-            if arrival_head is None:
-                raise ValueError(f"segment_slack={segment_slack!r} checks the arrival head's "
-                                 "segments: it needs arrival_head")
-            segment_slack = _num("segment_slack", segment_slack, 0)
-        self.segment_slack = segment_slack
-        if height_margin is not None:
-            if arrival_head is None:
-                raise ValueError(f"height_margin={height_margin!r} widens the arrival head's "
-                                 "rule: it needs arrival_head")
-            height_margin = _num("height_margin", height_margin, 0)
-        self.height_margin = height_margin
+        for name, value, does in (("segment_slack", segment_slack, "checks the arrival head's "
+                                   "segments"),
+                                  ("height_margin", height_margin, "widens the arrival head's "
+                                   "rule")):
+            if value is not None:
+                if arrival_head is None:
+                    raise ValueError(f"{name}={value!r} {does}: it needs arrival_head")
+                value = _num(name, value, 0)
+            setattr(self, name, value)
         if lost_board not in ("hold", "carry", "ask"):
             raise ValueError(f"lost_board must be 'hold', 'carry' or 'ask', got {lost_board!r}")
         if lost_board == "ask" and not getattr(arrival_head, "in_view", False):
