@@ -345,13 +345,14 @@ def parse_args(argv=None):
     # resolved to a bool (auto: with the estimated map; docs/tello.rst, "The random-rooms head,
     # shipped")
     a.fresh_hits = a.fresh_hits == "on" or (a.fresh_hits == "auto" and a.map == "estimated")
-    if a.lost_board == "auto":  # ask a head that can decline; hold the board for the others
-        a.lost_board = "hold"
-        if a.arrival_head not in (None, "depth"):
-            from torchrl_causal.perception.arrival import GoalOffsetEstimator
+    # whether the head's file has the in-view output (read once, for --lost-board auto / ask)
+    in_view = False
+    if a.arrival_head not in (None, "depth"):
+        from torchrl_causal.perception.arrival import GoalOffsetEstimator
 
-            if GoalOffsetEstimator.load(a.arrival_head).in_view:
-                a.lost_board = "ask"
+        in_view = GoalOffsetEstimator.load(a.arrival_head).in_view
+    if a.lost_board == "auto":  # ask a head that can decline; hold the board for the others
+        a.lost_board = "ask" if in_view else "hold"
     explicit = a.segment_slack not in ("auto", "none")
     a.segment_slack = _auto_distance(p, "--segment-slack", "distance", a.segment_slack,
                                      SEGMENT_SLACK if a.lost_board == "ask" else None)
@@ -372,9 +373,7 @@ def parse_args(argv=None):
             p.error(f"--lost-board ask asks the arrival head without the detector: it needs a "
                     f"head weights file with an in-view output, got --arrival-head "
                     f"{a.arrival_head}")
-        from torchrl_causal.perception.arrival import GoalOffsetEstimator
-
-        if not GoalOffsetEstimator.load(a.arrival_head).in_view:
+        if not in_view:
             p.error(f"--lost-board ask needs a head trained with an in-view output "
                     f"(train_arrival.py --in-view-share); {a.arrival_head} has none")
     elif a.lost_board != "hold" and a.final_approach is None:
