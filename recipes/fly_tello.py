@@ -218,6 +218,11 @@ def parse_args(argv=None):
                         "counts when sqrt((h + M)^2 + dz^2) - M <= --reach-offset (e.g. 0.07 "
                         "with 0.13: the simulator's 0.2 m sphere in height; docs/tello.rst, 'A "
                         "head that can decline'); default none")
+    p.add_argument("--mirror-check", type=float, default=None, metavar="M",
+                   help="with a learned arrival head: ask it on each frame and on its mirror "
+                        "image, read the mean of the two, and take nothing from a frame whose "
+                        "two sideways readings lie more than M m apart (docs/tello.rst, "
+                        "'Asking the head twice'); default none: one reading")
     p.add_argument("--seed", type=int, default=None,
                    help="emulator: the seed of the scene and its per-episode noise draws "
                         "(default: the run's seed); another seed flies other episodes")
@@ -368,6 +373,12 @@ def parse_args(argv=None):
                     "it needs the head")
         if not 0.0 <= a.height_margin <= 0.5:
             p.error(f"--height-margin must be a distance in [0, 0.5] m, got {a.height_margin:g}")
+    if a.mirror_check is not None:
+        if a.arrival_head in (None, "depth"):
+            p.error(f"--mirror-check {a.mirror_check:g} asks the learned arrival head twice: "
+                    "it needs the head")
+        if not 0.0 <= a.mirror_check <= 1.0:
+            p.error(f"--mirror-check must be a distance in [0, 1] m, got {a.mirror_check:g}")
     if a.lost_board == "ask":
         if a.arrival_head in (None, "depth"):
             p.error(f"--lost-board ask asks the arrival head without the detector: it needs a "
@@ -595,6 +606,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["lost_board"] = getattr(args, "lost_board", "hold")
         kw["segment_slack"] = getattr(args, "segment_slack", None)
         kw["height_margin"] = getattr(args, "height_margin", None)
+        kw["mirror_check"] = getattr(args, "mirror_check", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -790,8 +802,9 @@ def main(argv=None) -> dict:
         summary["lost_board"] = args.lost_board
     if getattr(args, "segment_slack", None) is not None:
         summary["segment_slack"] = args.segment_slack
-    if getattr(args, "height_margin", None) is not None:
-        summary["height_margin"] = args.height_margin
+    for opt in ("height_margin", "mirror_check"):
+        if getattr(args, opt, None) is not None:
+            summary[opt] = getattr(args, opt)
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,

@@ -28,19 +28,29 @@ def _share(x: np.ndarray) -> float | None:
 
 
 def evaluate(est, frames, labels, thresholds=(0.13, 0.16, 0.18, 0.2, 0.22),
-             in_view_share: float | None = None) -> dict:
+             in_view_share: float | None = None, mirror_check: float | None = None) -> dict:
     """Errors of the offsets, and where the rule "estimated 3-D distance <= t" fires
     inside and outside the 0.2 m goal sphere (the height difference as the sensor gives).
     A head with an in-view output fires only where it says the board is in view (p >= 0.5);
     with ``in_view_share`` (and labels with the board's share, column 4) the offsets'
     errors are over the frames where the board covers at least that share, and the
-    in-view output's accuracy is reported."""
-    parts = [est.estimate(torch.as_tensor(frames[i:i + 256]))
-             if getattr(est, "in_view", False) else (est(torch.as_tensor(frames[i:i + 256])), None)
-             for i in range(0, len(frames), 256)]
-    pred = np.concatenate([o.numpy() for o, _ in parts])
-    says = (np.concatenate([p.numpy() for _, p in parts]) >= 0.5 if parts[0][1] is not None
+    in-view output's accuracy is reported. ``mirror_check`` (m): the head is read as
+    ``TelloEnv(mirror_check=)`` reads it, the mean of each frame's and its mirror image's
+    offsets, and fires only where the two sideways readings lie at most that far apart."""
+    def read(x):
+        if mirror_check is not None:
+            off, p, spread = est.estimate_mirrored(x)
+            return off, p, spread
+        if getattr(est, "in_view", False):
+            return (*est.estimate(x), None)
+        return est(x), None, None
+
+    parts = [read(torch.as_tensor(frames[i:i + 256])) for i in range(0, len(frames), 256)]
+    pred = np.concatenate([o.numpy() for o, _, _ in parts])
+    says = (np.concatenate([p.numpy() for _, p, _ in parts]) >= 0.5 if parts[0][1] is not None
             else np.ones(len(pred), bool))
+    if mirror_check is not None:
+        says &= np.concatenate([s.numpy() for _, _, s in parts]) <= mirror_check
     seen = (labels[:, 4] >= in_view_share if in_view_share is not None
             else np.ones(len(pred), bool))
     err = np.abs(pred - labels[:, :2])[seen]

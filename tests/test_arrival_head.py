@@ -348,6 +348,76 @@ def test_tello_env_asks_a_head_that_can_decline():
                      reach_rule=rule, arrival_head=plain, lost_board="ask")
 
 
+def test_a_head_asked_on_the_frame_and_its_mirror():
+    """``estimate_mirrored``: the mean of the frame's reading and its mirror image's (sideways
+    turned back) and the two sideways readings' spread, bit for bit what two calls of
+    ``estimate`` give; ``TelloEnv(mirror_check=)`` reads that mean and takes nothing from a
+    frame whose spread exceeds the check, the chain then ending as for a declined frame."""
+    from torchrl_causal.perception.goal import GoalDetector
+
+    torch.manual_seed(0)
+    est = GoalOffsetEstimator(GoalOffsetNet(8, in_view=True))
+    frames = torch.randint(0, 255, (3, 240, 320, 3), dtype=torch.uint8)
+    offsets, p_view, spread = est.estimate_mirrored(frames)
+    one, p_one = est.estimate(frames)
+    mirror, p_mirror = est.estimate(frames.flip(2))
+    turned = mirror * torch.tensor([1.0, -1.0])
+    torch.testing.assert_close(offsets, (one + turned) / 2)
+    torch.testing.assert_close(p_view, (p_one + p_mirror) / 2)
+    torch.testing.assert_close(spread, (one[:, 1] - turned[:, 1]).abs())
+    assert GoalOffsetEstimator(GoalOffsetNet(8)).estimate_mirrored(frames)[1] is None
+
+    class Full(GoalDetector):
+        def detect(self, pixels, depth=None, **_):
+            return torch.tensor([[[0.0, 0.0, 84.0, 84.0]]]), torch.tensor([[0.9]])
+
+    class Mirrored:  # scripted (ahead, lateral) of a frame and of its mirror image per call
+        in_view = True
+
+        def __init__(self, pairs):
+            self.pairs, self.calls = iter(pairs), 0
+
+        def __call__(self, frames):
+            raise AssertionError("mirror_check reads estimate_mirrored only")
+
+        def estimate_mirrored(self, frames):
+            self.calls += 1
+            (a1, l1), (a2, l2) = next(self.pairs)  # l2: the mirror's, sign as read
+            return (torch.tensor([[(a1 + a2) / 2, (l1 - l2) / 2]]), torch.tensor([0.9]),
+                    torch.tensor([abs(l1 + l2)]))
+
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.13)
+    depth = lambda p: torch.full(p.shape[:3], 0.6)  # noqa: E731
+    frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
+    # agree within 0.08 m: the mean (0.3, 0.09); disagree by 0.3 m: nothing, and no segment
+    # to the next frame's reading
+    head = Mirrored([])
+    for ask in ("hold", "ask"):
+        head.pairs = iter([((0.3, 0.05), (0.3, -0.13)), ((0.1, 0.0), (0.1, 0.3)),
+                           ((-0.05, 0.02), (-0.05, -0.02))])
+        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                       reach_rule=rule, arrival_head=head, lost_board=ask, mirror_check=0.1)
+        assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
+            np.hypot(0.3, 0.09))
+        env._last_move = (0.2, 0.0, 0.0)
+        assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) is None  # unsure
+        assert env.arrival_estimate is None
+        assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
+            np.hypot(0.05, 0.02))  # one point: the unsure frame left no segment behind
+        assert head.calls == (3 if ask == "hold" else 6)
+        env.close()
+    with pytest.raises(ValueError, match="mirror_check=0.1 asks the arrival head twice"):
+        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                 reach_rule=rule, mirror_check=0.1)
+    with pytest.raises(ValueError, match="needs a learned head with estimate_mirrored"):
+        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                 reach_rule=rule, arrival_head=lambda f: torch.zeros(len(f), 2),
+                 mirror_check=0.1)
+    with pytest.raises(ValueError, match="mirror_check must be a finite number >= 0"):
+        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
+                 reach_rule=rule, arrival_head=est, mirror_check=-0.1)
+
+
 def test_train_arrival_recipe_writes_measured_weights(tmp_path):
     import sys
     from pathlib import Path

@@ -190,6 +190,8 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--board-back", "plain"], "invalid choice: 'plain'"),
     (["--height-margin", "0.07", "--arrival-head", "none"], "it needs the head"),
     (["--height-margin", "0.9"], "--height-margin must be a distance in [0, 0.5] m, got 0.9"),
+    (["--mirror-check", "0.1", "--arrival-head", "none"], "asks the learned arrival head twice"),
+    (["--mirror-check", "-0.1"], "--mirror-check must be a distance in [0, 1] m, got -0.1"),
     (["--segment-slack", "wide"], "--segment-slack must be a distance (m), 'auto' or 'none'"),
     (["--segment-slack", "2"], "--segment-slack must be a distance in [0, 1] m, got 2"),
     (["--segment-slack", "0.2", "--arrival-head", "none"], "it needs the head"),

@@ -264,6 +264,12 @@ class TelloEnv(EnvBase):
             while ``|dz| <= max_goal_offset + margin``. None (default): the 3-D distance
             with ``dz`` is bounded by ``max_goal_offset`` itself (docs/tello.rst, "A head
             that can decline").
+        mirror_check: with a learned ``arrival_head`` that has ``estimate_mirrored``
+            (:class:`~torchrl_causal.perception.arrival.GoalOffsetEstimator`), ask it on the
+            frame and on its mirror image: the estimate is the mean of the two, and a frame
+            whose two sideways readings lie more than this (m) apart gives nothing, as a
+            frame the head declines does. None (default): one reading of the frame
+            (docs/tello.rst, "Asking the head twice").
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
             default the take-off frame: x forward, y left at take-off), checked on
             the dead-reckoned position before each move; None: no geofence.
@@ -335,6 +341,7 @@ class TelloEnv(EnvBase):
         lost_board: str = "hold",
         segment_slack: float | None = None,
         height_margin: float | None = None,
+        mirror_check: float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -440,12 +447,19 @@ class TelloEnv(EnvBase):
         for name, value, does in (("segment_slack", segment_slack, "checks the arrival head's "
                                    "segments"),
                                   ("height_margin", height_margin, "widens the arrival head's "
-                                   "rule")):
+                                   "rule"),
+                                  ("mirror_check", mirror_check, "asks the arrival head twice")):
             if value is not None:
                 if arrival_head is None:
                     raise ValueError(f"{name}={value!r} {does}: it needs arrival_head")
                 value = _num(name, value, 0)
             setattr(self, name, value)
+        if mirror_check is not None and not callable(getattr(arrival_head, "estimate_mirrored",
+                                                             None)):
+            raise ValueError(f"mirror_check={mirror_check!r} asks the arrival head on the frame "
+                             "and its mirror image: it needs a learned head with "
+                             f"estimate_mirrored (GoalOffsetEstimator), got "
+                             f"{type(arrival_head).__name__}")
         if lost_board not in ("hold", "carry", "ask"):
             raise ValueError(f"lost_board must be 'hold', 'carry' or 'ask', got {lost_board!r}")
         if lost_board == "ask" and not getattr(arrival_head, "in_view", False):
@@ -826,10 +840,17 @@ class TelloEnv(EnvBase):
             if plane:
                 if look is None:
                     return None
-            elif ask:
-                look, p_view = self.arrival_head.estimate(np.asarray(frame)[None])
-                if float(p_view[0]) < 0.5:  # the head declines: no board it can read
+            elif ask or self.mirror_check is not None:
+                spread = None
+                if self.mirror_check is not None:  # the frame and its mirror image
+                    look, p_view, spread = self.arrival_head.estimate_mirrored(
+                        np.asarray(frame)[None])
+                else:
+                    look, p_view = self.arrival_head.estimate(np.asarray(frame)[None])
+                if ask and float(p_view[0]) < 0.5:  # the head declines: no board it can read
                     return None
+                if spread is not None and float(spread[0]) > self.mirror_check:
+                    return None  # the two readings disagree: the head is unsure
                 look = np.asarray(look, float).reshape(-1)[:2]
             else:
                 look = np.asarray(self.arrival_head(np.asarray(frame)[None]),

@@ -181,6 +181,35 @@ class GoalOffsetEstimator:
         out = self.net(_to_input(frames))
         return out[:, :2], (torch.sigmoid(out[:, -1]) if self.net.in_view else None)
 
+    @torch.no_grad()
+    def estimate_mirrored(self, frames) -> tuple[torch.Tensor, torch.Tensor | None,
+                                                  torch.Tensor]:
+        """:meth:`estimate` on each frame and on its mirror image (flipped left-right, its
+        sideways reading turned back), the symmetry every head was trained with. Returns
+        ``([B, 2]`` mean offsets (m), ``[B]`` mean in-view probability or None for a head
+        without that output, ``[B]`` how far apart the two sideways readings lie (m)): the
+        mean reads the offset better than one frame does, and the spread is large where the
+        head is unsure (docs/tello.rst, "Asking the head twice").
+
+        Example:
+            >>> import torch
+            >>> est = GoalOffsetEstimator(GoalOffsetNet(in_view=True))
+            >>> frames = torch.randint(0, 255, (2, 240, 320, 3), dtype=torch.uint8)
+            >>> offsets, p_view, spread = est.estimate_mirrored(frames)
+            >>> offsets.shape, p_view.shape, bool((spread >= 0).all())
+            (torch.Size([2, 2]), torch.Size([2]), True)
+            >>> mirror = est.estimate_mirrored(frames.flip(2))  # the same two views
+            >>> torch.allclose(mirror[0][:, 1], -offsets[:, 1], atol=1e-5)
+            True
+        """
+        x = _to_input(frames)
+        out = self.net(torch.cat([x, x.flip(-1)]))
+        a, b = out[:len(x)], out[len(x):]
+        back = b[:, :2] * torch.tensor([1.0, -1.0], dtype=b.dtype)  # the mirror's, turned back
+        p = ((torch.sigmoid(a[:, -1]) + torch.sigmoid(b[:, -1])) / 2 if self.net.in_view
+             else None)
+        return (a[:, :2] + back) / 2, p, (a[:, 1] - back[:, 1]).abs()
+
     def save(self, path) -> Path:
         """Writes the weights (float16), the network's width and :attr:`meta` to ``path``."""
         path = Path(path)
