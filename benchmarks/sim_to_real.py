@@ -68,14 +68,16 @@ TARGETS = {"success_min": {"thesis": 0.85}, "agreement_min": 0.95, "false_reache
 
 def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None = None,
         map_depth: str | None = None, compare_perception: str = "sim",
-        fresh_hits: str | None = None, goal_size=None) -> dict:
+        fresh_hits: str | None = None, goal_size=None, arrival: dict | None = None) -> dict:
     """One ``fly_tello.py`` run: the policy's scene, RGB, noise, the default arrival rule.
 
     ``weights`` (``{"detector": path, "depth": path}``, either may be None) flies candidate
     perception weights in place of the shipped ones; ``map_depth`` is ``fly_tello.py --map``,
     ``compare_perception`` its ``--compare-perception``, ``fresh_hits`` its ``--fresh-hits``
     (``"on"`` / ``"off"``; None: fly_tello's ``auto``),
-    ``goal_size`` its ``--goal-size`` (random layouts only).
+    ``goal_size`` its ``--goal-size`` (random layouts only); ``arrival``
+    (``{"height_margin": m, "mirror_check": m}``, None values left out) its
+    ``--height-margin`` / ``--mirror-check``, where the policy flies a learned arrival head.
     """
     argv = ["--run", str(policy_dir(policy)), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--no-video",
@@ -90,6 +92,9 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
         argv += ["--fresh-hits", fresh_hits]
     if goal_size is not None:
         argv += ["--goal-size", *(str(v) for v in goal_size)]
+    for key, value in (arrival or {}).items():
+        if value is not None:
+            argv += ["--" + key.replace("_", "-"), str(value)]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.main(argv)
 
@@ -110,6 +115,7 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "detector_weights": s.get("detector_weights", "shipped"),
             "depth_weights": s.get("depth_weights", "shipped"),
             "map": s.get("map"), "fresh_hits": bool(s.get("fresh_hits", False)),
+            "height_margin": s.get("height_margin"), "mirror_check": s.get("mirror_check"),
             "wall_s": s.get("wall_s")}
 
 
@@ -163,11 +169,21 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
                    help="fly_tello.py --compare-perception: DroneNavEnv's reference with the "
                         "simulator's perception (default) or the same RGB models")
+    p.add_argument("--height-margin", type=float, default=None, metavar="M",
+                   help="fly_tello.py --height-margin for the generalist's flights (its "
+                        "learned arrival head; default: off)")
+    p.add_argument("--mirror-check", type=float, default=None, metavar="M",
+                   help="fly_tello.py --mirror-check for the generalist's flights: the head read "
+                        "on each frame and its mirror image (default: fly_tello's auto)")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.fresh_hits == "on" and a.map == "exact":
         p.error("--fresh-hits needs the estimated map, got --map exact")
+    if a.height_margin is not None and not 0.0 <= a.height_margin <= 0.5:
+        p.error(f"--height-margin must be a distance in [0, 0.5] m, got {a.height_margin:g}")
+    if a.mirror_check is not None and not 0.0 <= a.mirror_check <= 1.0:
+        p.error(f"--mirror-check must be a distance in [0, 1] m, got {a.mirror_check:g}")
     if a.goal_size is not None:
         from torchrl_causal.envs.layouts import check_goal_size
 
@@ -191,7 +207,10 @@ def main(argv=None) -> list[dict]:
         for seed in a.seeds:
             s = fly(name, seed, a.episodes, a.out / f"{name}_seed{seed}", weights, a.map,
                     a.compare_perception, a.fresh_hits,
-                    a.goal_size if name != "thesis" else None)
+                    a.goal_size if name != "thesis" else None,
+                    # the thesis scene's head has no in-view output and was not measured so
+                    None if name == "thesis" else {"height_margin": a.height_margin,
+                                                   "mirror_check": a.mirror_check})
             per_seed.append(seed_figure(name, seed, s))
             print(json.dumps(per_seed[-1]), flush=True)
         figures += per_seed

@@ -192,6 +192,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--height-margin", "0.9"], "--height-margin must be a distance in [0, 0.5] m, got 0.9"),
     (["--mirror-check", "0.1", "--arrival-head", "none"], "asks the learned arrival head twice"),
     (["--mirror-check", "-0.1"], "--mirror-check must be a distance in [0, 1] m, got -0.1"),
+    (["--mirror-check", "twice"], "--mirror-check must be a distance (m), 'auto' or 'none'"),
     (["--segment-slack", "wide"], "--segment-slack must be a distance (m), 'auto' or 'none'"),
     (["--segment-slack", "2"], "--segment-slack must be a distance in [0, 1] m, got 2"),
     (["--segment-slack", "0.2", "--arrival-head", "none"], "it needs the head"),
@@ -223,14 +224,18 @@ def test_a_head_that_can_decline_is_asked_by_default():
     common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
               "--reach-offset", "0.13"]
     view = fly_tello.parse_args([*common, "--arrival-head", "view"])
-    assert (view.arrival_head, view.lost_board, view.segment_slack) == (
-        str(VIEW_WEIGHTS), "ask", fly_tello.SEGMENT_SLACK)
+    assert (view.arrival_head, view.lost_board, view.segment_slack, view.mirror_check) == (
+        str(VIEW_WEIGHTS), "ask", fly_tello.SEGMENT_SLACK, fly_tello.MIRROR_CHECK)
     rooms = fly_tello.parse_args([*common, "--arrival-head", "rooms"])
-    assert (rooms.arrival_head, rooms.lost_board, rooms.segment_slack) == (
-        str(ROOMS_WEIGHTS), "hold", None)
+    assert (rooms.arrival_head, rooms.lost_board, rooms.segment_slack, rooms.mirror_check) == (
+        str(ROOMS_WEIGHTS), "hold", None, None)
     off = fly_tello.parse_args([*common, "--arrival-head", "view", "--segment-slack", "none",
                                 "--lost-board", "hold"])
-    assert (off.lost_board, off.segment_slack) == ("hold", None)
+    assert (off.lost_board, off.segment_slack, off.mirror_check) == ("hold", None, None)
+    once = fly_tello.parse_args([*common, "--arrival-head", "view", "--mirror-check", "none"])
+    assert once.mirror_check is None and once.lost_board == "ask"
+    assert fly_tello.parse_args([*common, "--arrival-head", "rooms", "--mirror-check", "0.1"]
+                                ).mirror_check == 0.1
     # --board-back blank: the emulator's DroneNavEnv gets the printed board's blank back
     blank = fly_tello.parse_args([*common, "--board-back", "blank"])
     assert fly_tello.emulated_scene(blank, None)[1]["board_back"] == "blank"
@@ -556,6 +561,17 @@ def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, mo
                       "--out", str(tmp_path), "--map", "estimated", "--goal-size", "1.0", "0.8"])
     assert "--goal-size" not in calls[0]
     assert calls[1][calls[1].index("--goal-size"):][:3] == ["--goal-size", "1.0", "0.8"]
+    calls.clear()  # the arrival options reach the generalist's flights only
+    sim_to_real.main(["--policies", "thesis", "generalist", "--seeds", "1", "--episodes", "2",
+                      "--out", str(tmp_path), "--map", "estimated", "--mirror-check", "0.1",
+                      "--height-margin", "0.07"])
+    assert "--mirror-check" not in calls[0] and "--height-margin" not in calls[0]
+    assert calls[1][calls[1].index("--mirror-check") + 1] == "0.1"
+    assert calls[1][calls[1].index("--height-margin") + 1] == "0.07"
+    for flag, bad in (("--mirror-check", "2"), ("--height-margin", "-1")):
+        with pytest.raises(SystemExit):
+            sim_to_real.main([flag, bad])
+        assert f"{flag} must be a distance in" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         sim_to_real.main(["--goal-size", "9", "9"])
     assert "--goal-size" in capsys.readouterr().err
