@@ -18,6 +18,26 @@ from torchrl_causal.perception.arrival import (
     segment_distance,
     train_goal_offset,
 )
+from torchrl_causal.perception.goal import GoalDetector
+
+
+class FullView(GoalDetector):
+    """A detector that sees the board filling the 84 x 84 view at 0.9 confidence."""
+
+    def detect(self, pixels, depth=None, **_):
+        return torch.tensor([[[0.0, 0.0, 84.0, 84.0]]]), torch.tensor([[0.9]])
+
+
+#: The rule the dry-run envs below decide with.
+RULE = ReachRule(max_distance=1.0, max_goal_offset=0.13)
+
+
+def dry_env(**kw) -> TelloEnv:
+    """A dry-run ``TelloEnv`` whose detector always sees the board and whose depth reads
+    0.6 m everywhere; ``kw``: the arrival options under test (``reach_rule``: :data:`RULE`)."""
+    kw.setdefault("reach_rule", RULE)
+    return TelloEnv(dry_run=True, detector=FullView(), verbose=False,
+                    depth_estimator=lambda p: torch.full(p.shape[:3], 0.6), **kw)
 
 
 @pytest.fixture(scope="module")
@@ -81,20 +101,12 @@ def test_segment_distance_sees_a_pass_through_the_sphere():
 def test_tello_env_arrives_by_the_head():
     """TelloEnv asks the head for the offset: at the goal point it fires, 0.5 m off it does
     not, and a rule without max_goal_offset is refused with the head."""
-    from torchrl_causal.perception.goal import GoalDetector
-
-    class Full(GoalDetector):
-        def detect(self, pixels, depth=None, **_):
-            return torch.tensor([[[0.0, 0.0, 84.0, 84.0]]]), torch.tensor([[0.9]])
-
     def head(at):
         return lambda frames: torch.tensor([at] * len(frames))
 
-    rule = ReachRule(max_distance=1.0, max_goal_offset=0.2)
-    depth = lambda p: torch.full(p.shape[:3], 0.6)  # noqa: E731 - MonoDepth reading short
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.2)  # depth reads 0.6 m: MonoDepth short
     for at, reached in (((0.05, 0.02), True), ((0.5, 0.0), False), ((0.0, 0.3), False)):
-        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                       reach_rule=rule, arrival_head=head(at))
+        env = dry_env(reach_rule=rule, arrival_head=head(at))
         m = env.measure_frame(np.zeros((720, 960, 3), np.uint8))
         assert m["reached"] is reached and m["goal_offset"] == pytest.approx(np.hypot(*at))
         env.close()
@@ -106,14 +118,13 @@ def test_tello_env_arrives_by_the_head():
         calls.append(len(frames))
         return torch.tensor([(0.0, 0.0)] * len(frames))
 
-    far = TelloEnv(dry_run=True, detector=Full(), verbose=False, reach_rule=rule,
+    far = TelloEnv(dry_run=True, detector=FullView(), verbose=False, reach_rule=rule,
                    depth_estimator=lambda p: torch.full(p.shape[:3], 1.5), arrival_head=counting)
     m = far.measure_frame(np.zeros((720, 960, 3), np.uint8))
     assert not m["reached"] and m["goal_offset"] is None and calls == []
     far.close()
     # the height sensor alone puts it outside the sphere: the head is not asked either
-    high = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                    reach_rule=ReachRule(max_distance=1.0, max_goal_offset=0.2,
+    high = dry_env(reach_rule=ReachRule(max_distance=1.0, max_goal_offset=0.2,
                                          goal_height=1.0), arrival_head=counting)
     m = high.measure_frame(np.zeros((720, 960, 3), np.uint8), altitude=1.35)
     assert not m["reached"] and m["goal_offset"] == pytest.approx(0.35) and calls == []
@@ -124,8 +135,7 @@ def test_tello_env_arrives_by_the_head():
     # the head is asked on that frame, the segment runs on from the last estimate; a
     # second frame without a detection, or a loss with no sighting before, asks nothing
     seq = iter([(0.3, 0.0), (0.1, 0.0), (0.0, 0.0)])
-    held = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
+    held = dry_env(reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
     frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
     assert held._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None  # never seen
     assert held._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.3)
@@ -135,15 +145,13 @@ def test_tello_env_arrives_by_the_head():
     # ... only near the goal point (within twice max_goal_offset): a board lost after a
     # look that put the drone 0.5 m off is one the camera left, and nothing is asked
     seq = iter([(0.5, 0.0), (0.0, 0.0)])
-    left = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
+    left = dry_env(reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]))
     assert left._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
     assert left._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None
     left.close()
     # ... unless hold_radius sets that distance itself: at 0.6 m the same loss is held
     seq = iter([(0.5, 0.0), (0.1, 0.0)])
-    wide = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                    reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+    wide = dry_env(reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
                     hold_radius=0.6)
     assert wide._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
     assert wide._goal_offset(False, dmap, box, 1.0, frame, 0.0) == pytest.approx(0.1)
@@ -153,8 +161,7 @@ def test_tello_env_arrives_by_the_head():
     # (here pi: flying +x in odometry brings the drone nearer the board)
     for lost, third in (("carry", 0.05), ("hold", 0.0)):
         seq = iter([(0.8, 0.0), (0.3, 0.0), (0.0, 0.0)])
-        carry = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                         reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+        carry = dry_env(reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
                          final_approach=0.4, lost_board=lost)
         carry._world = np.array([-0.5, 0.0])
         assert carry._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.8)
@@ -177,13 +184,11 @@ def test_tello_env_arrives_by_the_head():
                         "hold_radius"),
                        (dict(hold_radius=0.4), "hold_radius=0.4 .* needs arrival_head")):
         with pytest.raises(ValueError, match=match):
-            TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                     reach_rule=rule, **bad)
+            dry_env(reach_rule=rule, **bad)
     # arrival_fusion: looks taken without a move across the floor (a turn: _last_move is
     # zero) are averaged; a move forward starts a new place, with its segment
     seq = iter([(0.30, 0.0), (0.10, 0.0), (0.20, 0.0), (0.05, 0.10)])
-    fused = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                     reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
+    fused = dry_env(reach_rule=rule, arrival_head=lambda f: torch.tensor([next(seq)]),
                      arrival_fusion=True)
     assert fused._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.30)
     fused._last_move = (0.0, 0.0, 0.0)  # turned in place
@@ -198,8 +203,7 @@ def test_tello_env_arrives_by_the_head():
     # vertical segment from the last height counts the pass; across the floor it is not
     hrule = ReachRule(max_distance=1.0, max_goal_offset=0.15, goal_height=1.0)
     for move, reached in (((0.0, 0.0, -0.4), True), ((0.0, 0.25, 0.0), False)):
-        crossed = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                           reach_rule=hrule, arrival_head=head((0.05, 0.0)))
+        crossed = dry_env(reach_rule=hrule, arrival_head=head((0.05, 0.0)))
         assert crossed._goal_offset(True, dmap, box, 1.2, frame, 0.6) == pytest.approx(0.2)
         crossed._last_move = move
         off = crossed._goal_offset(True, dmap, box, 0.8, frame, 0.6)
@@ -211,22 +215,18 @@ def test_tello_env_arrives_by_the_head():
     # range one step before, the head kept from being asked by the height sensor), the
     # board is held: a climb does not turn the camera away; a move across the floor does
     for move, expected in (((0.0, 0.0, -0.4), 0.05), ((0.0, 0.25, 0.0), None)):
-        lost = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                        reach_rule=hrule, arrival_head=head((0.05, 0.0)))
+        lost = dry_env(reach_rule=hrule, arrival_head=head((0.05, 0.0)))
         assert lost._goal_offset(True, dmap, box, 1.2, frame, 0.6) == pytest.approx(0.2)
         lost._last_move = move
         off = lost._goal_offset(False, dmap, box, 0.8, frame, 0.0)
         assert off == (None if expected is None else pytest.approx(expected)), (move, off)
         lost.close()
     with pytest.raises(ValueError, match="arrival_fusion must be a bool"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, arrival_head=head((0.0, 0.0)), arrival_fusion="yes")
+        dry_env(reach_rule=rule, arrival_head=head((0.0, 0.0)), arrival_fusion="yes")
     with pytest.raises(ValueError, match="arrival_head needs a reach_rule with max_goal_offset"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 arrival_head=head((0.0, 0.0)))
+        dry_env(reach_rule=None, arrival_head=head((0.0, 0.0)))  # TelloEnv's default rule
     with pytest.raises(ValueError, match="arrival_head must be a callable"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, arrival_head="arrival.pt")
+        dry_env(reach_rule=rule, arrival_head="arrival.pt")
 
 
 def test_a_head_with_an_in_view_output_learns_to_decline(tmp_path):
@@ -259,12 +259,6 @@ def test_tello_env_asks_a_head_that_can_decline():
     asked on the following frames without a detection for as long as it says the board is
     in view; a frame it declines gives nothing and ends the chain. A head without the
     in-view output is refused."""
-    from torchrl_causal.perception.goal import GoalDetector
-
-    class Full(GoalDetector):
-        def detect(self, pixels, depth=None, **_):
-            return torch.tensor([[[0.0, 0.0, 84.0, 84.0]]]), torch.tensor([[0.9]])
-
     class Scripted:  # (ahead, lateral, p_in_view) per call
         in_view = True
 
@@ -279,13 +273,10 @@ def test_tello_env_asks_a_head_that_can_decline():
             a, lat, p = next(self.looks)
             return torch.tensor([[a, lat]]), torch.tensor([p])
 
-    rule = ReachRule(max_distance=1.0, max_goal_offset=0.13)
-    depth = lambda p: torch.full(p.shape[:3], 0.6)  # noqa: E731
     frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
     head = Scripted([(0.5, 0.0, 0.9), (0.3, 0.0, 0.9), (0.05, 0.0, 0.8), (0.0, 0.0, 0.2),
                      (0.0, 0.0, 0.2)])
-    env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                   reach_rule=rule, arrival_head=head, lost_board="ask")
+    env = dry_env(arrival_head=head, lost_board="ask")
     assert env._goal_offset(False, dmap, box, 1.0, frame, 0.0) is None and head.calls == 0
     assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.5)
     env._last_move = (0.2, 0.0, 0.0)
@@ -305,8 +296,7 @@ def test_tello_env_asks_a_head_that_can_decline():
     # through the goal sphere
     for slack, jumped in ((None, 0.3), (0.2, np.hypot(0.3, 0.5))):
         head = Scripted([(0.3, -0.3, 0.9), (0.3, 0.5, 0.9), (0.3, -0.05, 0.9), (0.3, 0.15, 0.9)])
-        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                       reach_rule=rule, arrival_head=head, lost_board="ask",
+        env = dry_env(arrival_head=head, lost_board="ask",
                        segment_slack=slack)
         assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
             np.hypot(0.3, 0.3))
@@ -317,11 +307,9 @@ def test_tello_env_asks_a_head_that_can_decline():
         assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(0.3)
         env.close()
     with pytest.raises(ValueError, match="segment_slack=0.2 checks the arrival head's"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, segment_slack=0.2)
+        dry_env(segment_slack=0.2)
     with pytest.raises(ValueError, match="segment_slack must be a finite number >= 0"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, arrival_head=Scripted([]), segment_slack=-1.0)
+        dry_env(arrival_head=Scripted([]), segment_slack=-1.0)
     # height_margin: the rule's 0.13 m bounds the head's horizontal distance; 0.07 m is added
     # back for the height sensor's, so a pass 0.17 m above the goal point (inside the
     # simulator's 0.2 m sphere) is asked and counts; on the floor nothing changes
@@ -329,23 +317,19 @@ def test_tello_env_asks_a_head_that_can_decline():
     for margin, alt, expected in ((None, 1.17, 0.17), (0.07, 1.17, np.hypot(0.07, 0.17) - 0.07),
                                   (0.07, 1.0, 0.1), (0.07, 1.25, 0.25)):
         head = Scripted([(0.1 if alt == 1.0 else 0.0, 0.0, 0.9)])
-        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                       reach_rule=hrule, arrival_head=head, lost_board="ask",
+        env = dry_env(reach_rule=hrule, arrival_head=head, lost_board="ask",
                        height_margin=margin)
         got = env._goal_offset(True, dmap, box, alt, frame, 0.6)
         assert got == pytest.approx(expected), (margin, alt)
         assert head.calls == (0 if expected in (0.17, 0.25) else 1)
         env.close()
     with pytest.raises(ValueError, match="height_margin=0.07 widens the arrival head's rule"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, height_margin=0.07)
+        dry_env(height_margin=0.07)
     real = GoalOffsetEstimator(GoalOffsetNet(8, in_view=True))
-    TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-             reach_rule=rule, arrival_head=real, lost_board="ask").close()
+    dry_env(arrival_head=real, lost_board="ask").close()
     for plain in (GoalOffsetEstimator(GoalOffsetNet(8)), lambda f: torch.zeros(len(f), 2)):
         with pytest.raises(ValueError, match="needs a head that says whether the board is"):
-            TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                     reach_rule=rule, arrival_head=plain, lost_board="ask")
+            dry_env(arrival_head=plain, lost_board="ask")
 
 
 def test_a_head_asked_on_the_frame_and_its_mirror():
@@ -386,8 +370,6 @@ def test_a_head_asked_on_the_frame_and_its_mirror():
             return (torch.tensor([[(a1 + a2) / 2, (l1 - l2) / 2]]), torch.tensor([0.9]),
                     torch.tensor([abs(l1 + l2)]))
 
-    rule = ReachRule(max_distance=1.0, max_goal_offset=0.13)
-    depth = lambda p: torch.full(p.shape[:3], 0.6)  # noqa: E731
     frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
     # agree within 0.08 m: the mean (0.3, 0.09); disagree by 0.3 m: nothing, and no segment
     # to the next frame's reading
@@ -395,8 +377,7 @@ def test_a_head_asked_on_the_frame_and_its_mirror():
     for ask in ("hold", "ask"):
         head.pairs = iter([((0.3, 0.05), (0.3, -0.13)), ((0.1, 0.0), (0.1, 0.3)),
                            ((-0.05, 0.02), (-0.05, -0.02))])
-        env = TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                       reach_rule=rule, arrival_head=head, lost_board=ask, mirror_check=0.1)
+        env = dry_env(arrival_head=head, lost_board=ask, mirror_check=0.1)
         assert env._goal_offset(True, dmap, box, 1.0, frame, 0.6) == pytest.approx(
             np.hypot(0.3, 0.09))
         env._last_move = (0.2, 0.0, 0.0)
@@ -407,15 +388,12 @@ def test_a_head_asked_on_the_frame_and_its_mirror():
         assert head.calls == (3 if ask == "hold" else 6)
         env.close()
     with pytest.raises(ValueError, match="mirror_check=0.1 asks the arrival head twice"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, mirror_check=0.1)
+        dry_env(mirror_check=0.1)
     with pytest.raises(ValueError, match="needs a learned head with estimate_mirrored"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, arrival_head=lambda f: torch.zeros(len(f), 2),
+        dry_env(arrival_head=lambda f: torch.zeros(len(f), 2),
                  mirror_check=0.1)
     with pytest.raises(ValueError, match="mirror_check must be a finite number >= 0"):
-        TelloEnv(dry_run=True, detector=Full(), verbose=False, depth_estimator=depth,
-                 reach_rule=rule, arrival_head=est, mirror_check=-0.1)
+        dry_env(arrival_head=est, mirror_check=-0.1)
 
 
 def test_train_arrival_recipe_writes_measured_weights(tmp_path):
