@@ -276,6 +276,7 @@ def test_the_arrival_head_is_the_default_where_it_was_measured():
                                 ).reach_rule.max_goal_offset == 0.18  # the user's value wins
     real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])
     assert real.arrival_head == str(VIEW_WEIGHTS) and real.lost_board == "ask"
+    assert real.mirror_check == fly_tello.MIRROR_CHECK  # the mean of frame and mirror image
     assert real.reach_rule.max_goal_offset == fly_tello.ROOMS_REACH_OFFSET == 0.13
     rooms = fly_tello.parse_args(["--goal-size", "1.0", "0.8"])  # the generalist, printed board
     assert rooms.arrival_head == str(VIEW_WEIGHTS) and rooms.final_approach == 0.4
