@@ -363,27 +363,18 @@ def parse_args(argv=None):
     explicit = a.segment_slack not in ("auto", "none")
     a.segment_slack = _auto_distance(p, "--segment-slack", "distance", a.segment_slack,
                                      SEGMENT_SLACK if a.lost_board == "ask" else None)
-    if explicit:
-        if not 0.0 <= a.segment_slack <= 1.0:
-            p.error(f"--segment-slack must be a distance in [0, 1] m, got {a.segment_slack:g}")
-        if a.arrival_head is None:
-            p.error(f"--segment-slack {a.segment_slack:g} checks the arrival head's segments: "
-                    "it needs the head")
+    if explicit:  # the board plane's segments are checked too
+        _head_distance(p, a, "--segment-slack", a.segment_slack, 1.0,
+                       "checks the arrival head's segments", learned=False)
     if a.height_margin is not None:
-        if a.arrival_head in (None, "depth"):
-            p.error(f"--height-margin {a.height_margin:g} widens the learned arrival head's rule: "
-                    "it needs the head")
-        if not 0.0 <= a.height_margin <= 0.5:
-            p.error(f"--height-margin must be a distance in [0, 0.5] m, got {a.height_margin:g}")
+        _head_distance(p, a, "--height-margin", a.height_margin, 0.5,
+                       "widens the learned arrival head's rule")
     explicit = a.mirror_check not in ("auto", "none")
     a.mirror_check = _auto_distance(p, "--mirror-check", "distance", a.mirror_check,
                                     MIRROR_CHECK if a.lost_board == "ask" else None)
     if explicit:
-        if a.arrival_head in (None, "depth"):
-            p.error(f"--mirror-check {a.mirror_check:g} asks the learned arrival head twice: "
-                    "it needs the head")
-        if not 0.0 <= a.mirror_check <= 1.0:
-            p.error(f"--mirror-check must be a distance in [0, 1] m, got {a.mirror_check:g}")
+        _head_distance(p, a, "--mirror-check", a.mirror_check, 1.0,
+                       "asks the learned arrival head twice")
     if a.lost_board == "ask":
         if a.arrival_head in (None, "depth"):
             p.error(f"--lost-board ask asks the arrival head without the detector: it needs a "
@@ -492,6 +483,16 @@ def _auto_distance(p, flag: str, what: str, value: str, auto: float | None) -> f
         return float(value)
     except ValueError:
         p.error(f"{flag} must be a {what} (m), 'auto' or 'none', got {value!r}")
+
+
+def _head_distance(p, a, flag: str, value: float, high: float, does: str,
+                   learned: bool = True) -> None:
+    """An arrival-head option's length (m): refused without the head (``learned``: also with
+    the depth map's board plane, ``--arrival-head depth``) or outside ``[0, high]``."""
+    if a.arrival_head is None or (learned and a.arrival_head == "depth"):
+        p.error(f"{flag} {value:g} {does}: it needs the head")
+    if not 0.0 <= value <= high:
+        p.error(f"{flag} must be a distance in [0, {high:g}] m, got {value:g}")
 
 
 def head_applies(args) -> str | None:

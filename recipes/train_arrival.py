@@ -39,8 +39,7 @@ def evaluate(est, frames, labels, thresholds=(0.13, 0.16, 0.18, 0.2, 0.22),
     offsets, and fires only where the two sideways readings lie at most that far apart."""
     def read(x):
         if mirror_check is not None:
-            off, p, spread = est.estimate_mirrored(x)
-            return off, p, spread
+            return est.estimate_mirrored(x)
         if getattr(est, "in_view", False):
             return (*est.estimate(x), None)
         return est(x), None, None
