@@ -21,9 +21,12 @@ Figures (one JSON object each):
 * ``frames_per_second``: each library trains ``--speed-frames`` frames with no
   evaluation, the runs alternated ``--repeats`` times in this one process;
   the medians and their ratio (target of the "thesis protocol" issue:
-  ``DQNLoop`` >= SB3). A third run per repeat, ``dqnloop_dqnloss``, is the loop
+  ``DQNLoop`` >= SB3). Two more loop runs per repeat: ``dqnloop_dqnloss``, the loop
   with TorchRL's own ``DQNLoss`` (``loss.stateful=false``) instead of its
-  ``StatefulDQNLoss``: the same numbers bit for bit, with per-call parameter swaps.
+  ``StatefulDQNLoss`` (the same numbers bit for bit, with per-call parameter swaps), and
+  ``dqnloop_sequential_acting``, the loop acting through ``TensorDictSequential(actor,
+  explorer)`` (``collector.fused_acting=false``) instead of its ``EGreedyQValuePolicy``
+  (the same actions bit for bit).
   ``paired_*``: the per-repeat ratios, their geometric mean and its 95 % interval
   (the runs of one repeat are back to back, so a slow spell of the machine slows both);
 * ``first_success`` (per library): over ``--seeds``, the frames of the first
@@ -400,35 +403,35 @@ def main(argv=None) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory(prefix="vs_sb3_") as tmp:
         if a.speed_frames:
-            # the loop with TorchRL's own DQNLoss (loss.stateful=false) runs beside them:
-            # the same numbers, computed with the per-call parameter swaps
-            fps = {"dqnloop": [], "dqnloop_dqnloss": [], "sb3": []}
+            # beside them, the loop with TorchRL's own DQNLoss (loss.stateful=false: the same
+            # numbers with per-call parameter swaps) and the loop acting through
+            # TensorDictSequential(actor, explorer) (collector.fused_acting=false: the same
+            # actions, three tensordict modules a call)
+            variants = {"dqnloop": [], "dqnloop_dqnloss": ["loss.stateful=false"],
+                        "dqnloop_sequential_acting": ["collector.fused_acting=false"]}
+            fps = {k: [] for k in (*variants, "sb3")}
             starts = min(1000, a.speed_frames // 3)
             for r in range(a.repeats):
                 # eval.episodes=0: the loop's timed part then holds no greedy episodes
                 # (it evaluates once when the budget ends); SB3's timed learn() holds none
-                cfg = recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}",
-                                    [f"loss.learning_starts={starts}", "eval.episodes=0",
-                                     *a.override])
-                fps["dqnloop"].append(run_dqnloop(cfg)["fps"])
-                cfg_f = recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}_dqnloss",
-                                      [f"loss.learning_starts={starts}", "eval.episodes=0",
-                                       "loss.stateful=false", *a.override])
-                fps["dqnloop_dqnloss"].append(run_dqnloop(cfg_f)["fps"])
-                fps["sb3"].append(run_sb3(cfg, 0, 0, 1)["fps"])
-            ours, functional, theirs = (statistics.median(fps[k])
-                                        for k in ("dqnloop", "dqnloop_dqnloss", "sb3"))
+                cfgs = {name: recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}_{name}",
+                                            [f"loss.learning_starts={starts}", "eval.episodes=0",
+                                             *extra, *a.override])
+                        for name, extra in variants.items()}
+                for name, cfg in cfgs.items():
+                    fps[name].append(run_dqnloop(cfg)["fps"])
+                fps["sb3"].append(run_sb3(cfgs["dqnloop"], 0, 0, 1)["fps"])
+            med = {k: statistics.median(v) for k, v in fps.items()}
             rows.append({"bench": "vs_sb3", "figure": "frames_per_second",
                          "frames": a.speed_frames, "repeats": a.repeats,
                          **{k: [round(v, 1) for v in fps[k]] for k in fps},
-                         "dqnloop_median": round(ours, 1),
-                         "dqnloop_dqnloss_median": round(functional, 1),
-                         "sb3_median": round(theirs, 1),
-                         "ratio_dqnloop_over_sb3": round(ours / theirs, 3),
-                         "ratio_dqnloop_dqnloss_over_sb3": round(functional / theirs, 3),
-                         "paired_dqnloop_over_sb3": paired_ratio(fps["dqnloop"], fps["sb3"]),
-                         "paired_dqnloop_over_dqnloop_dqnloss": paired_ratio(
-                             fps["dqnloop"], fps["dqnloop_dqnloss"])})
+                         **{f"{k}_median": round(v, 1) for k, v in med.items()},
+                         **{f"ratio_{k}_over_sb3": round(med[k] / med["sb3"], 3)
+                            for k in variants},
+                         **{f"paired_{k}_over_sb3": paired_ratio(fps[k], fps["sb3"])
+                            for k in variants},
+                         **{f"paired_dqnloop_over_{k}": paired_ratio(fps["dqnloop"], fps[k])
+                            for k in variants if k != "dqnloop"}})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
             cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)

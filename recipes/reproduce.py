@@ -419,8 +419,9 @@ def compose_run_config(overrides: list[str], variant: str = "cbn_v2"):
 RUN_ONLY_KEYS = ("seed", "device", "threads", "progress", "output_dir", "checkpoint",
                  "logger", "outputs")
 #: Nested keys that choose how the same numbers are computed (``loss.stateful``: the two
-#: losses give the same runs bit for bit, ``tests/test_stateful_loss.py``).
-IMPLEMENTATION_KEYS = ("loss.stateful",)
+#: losses give the same runs bit for bit, ``tests/test_stateful_loss.py``;
+#: ``collector.fused_acting``: the same actions, ``tests/test_acting.py``).
+IMPLEMENTATION_KEYS = ("loss.stateful", "collector.fused_acting")
 
 
 #: Config keys added after runs were made, with the value that computes what their

@@ -320,6 +320,7 @@ def loop_config(cfg: DictConfig, variant: ru.Variant):
         stop_after_frames=cfg.checkpoint.stop_after_frames, seed=cfg.seed, device=cfg.device,
         progress=cfg.progress, overlap=cfg.collector.get("overlap", False),
         eval_fixed_seed=cfg.eval.get("fixed_episodes", False),
+        fused_acting=cfg.collector.get("fused_acting", True),
     )
 
 

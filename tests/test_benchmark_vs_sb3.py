@@ -43,7 +43,9 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
                           "--override", "env.max_steps=40"])
     speed = rows[0]
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
-    assert speed["dqnloop_dqnloss_median"] > 0 and len(speed["dqnloop_dqnloss"]) == speed["repeats"]
+    for name in ("dqnloop_dqnloss", "dqnloop_sequential_acting"):
+        assert speed[f"{name}_median"] > 0 and len(speed[name]) == speed["repeats"]
+        assert len(speed[f"paired_dqnloop_over_{name}"]["per_repeat"]) == speed["repeats"]
     paired = speed["paired_dqnloop_over_sb3"]
     # one repeat: its ratio is the medians' (from the unrounded frames/s)
     assert paired["per_repeat"] == [speed["ratio_dqnloop_over_sb3"]] == [paired["geomean"]]

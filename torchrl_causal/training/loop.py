@@ -59,6 +59,7 @@ import numpy as np
 import torch
 
 from torchrl_causal.data.checkpoint import install_filled_rows_checkpointer
+from torchrl_causal.modules.acting import acting_policy
 from torchrl_causal.training.evaluation import OUTCOME_KEYS, evaluate, seed_transforms
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 
@@ -127,6 +128,12 @@ class LoopConfig:
         device: where the network, the buffer samples and the gate run
             (the env stays where it is).
         progress: show a tqdm bar.
+        fused_acting: the collector acts with
+            :class:`~torchrl_causal.modules.EGreedyQValuePolicy` (the actor and
+            explorer computed on tensors) where the actor is a ``QValueActor`` and
+            the explorer an ``EGreedyModule``; the same actions bit for bit as
+            ``TensorDictSequential(actor, explorer)``, which ``False`` uses
+            (implementation choice, kept for side-by-side timing).
 
     Raises:
         ValueError: naming the field and its value, for a bad setting.
@@ -167,6 +174,7 @@ class LoopConfig:
     seed: int = 0
     device: str = "cpu"
     progress: bool = False
+    fused_acting: bool = True
     overlap: bool = False
 
     def __post_init__(self):
@@ -207,7 +215,7 @@ class LoopConfig:
         if self.loss_function not in LOSS_FUNCTIONS:
             bad("loss_function", f"one of {LOSS_FUNCTIONS}")
         for name in ("double_dqn", "keep_best", "progress", "keep_final_buffer", "overlap",
-                     "eval_fixed_seed"):
+                     "eval_fixed_seed", "fused_acting"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "True or False")
         try:
@@ -447,7 +455,10 @@ class DQNLoop:
             replay_buffer.append_transform(hook)  # once, also when the buffer already has it
         self.replay_buffer = replay_buffer
         self._acting_actor, self._rb_rng, self._synced_at = None, None, None
-        self.collector_policy = self.policy
+        # the collector acts with the same policy, computed on tensors where the actor is a
+        # QValueActor and the explorer an EGreedyModule (the same actions bit for bit)
+        act = acting_policy if cfg.fused_acting else TensorDictSequential
+        self.collector_policy = act(actor, explorer, *self.guards)
         self._loss_forward = loss
         if cfg.overlap:
             # TorchRL's LossModule.forward sets the process-global exploration type
@@ -461,8 +472,7 @@ class DQNLoop:
             # thread updates the learner's in place meanwhile) and the buffer samples
             # with its own generator (the worker may draw from the global RNG)
             self._acting_actor = copy.deepcopy(actor).requires_grad_(False)
-            self.collector_policy = TensorDictSequential(self._acting_actor, explorer,
-                                                         *self.guards)
+            self.collector_policy = act(self._acting_actor, explorer, *self.guards)
             self._rb_rng = torch.Generator(device=_storage_device(replay_buffer))
             replay_buffer.set_rng(self._rb_rng)
         self.eval_envs = dict(eval_envs or {})

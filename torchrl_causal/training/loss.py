@@ -29,12 +29,12 @@ import copy
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
-from torchrl.modules import QValueModule
 from torchrl.objectives import DQNLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 from torchrl.objectives.value.functional import td0_return_estimate
+
+from torchrl_causal.modules.acting import qvalue_parts
 
 __all__ = ["StatefulDQNLoss"]
 
@@ -121,20 +121,15 @@ class StatefulDQNLoss(DQNLoss):
         return not torch.compiler.is_compiling()
 
     def _plain_parts(self):
-        """``(network module, QValueModule)`` of a value network that is one
-        ``TensorDictModule`` around a plain network followed by a ``QValueModule``
-        (``QValueActor``'s layout), else ``None``."""
-        net = self.value_network
-        mods = getattr(net, "module", None)
-        if not isinstance(mods, torch.nn.ModuleList) or len(mods) != 2:
+        """``(network module, QValueModule)`` of a value network laid out as ``QValueActor``
+        (:func:`~torchrl_causal.modules.acting.qvalue_parts`) whose outputs are the keys this
+        loss reads, else ``None``."""
+        parts = qvalue_parts(self.value_network)
+        if parts is None:
             return None
-        tdm, qmod = mods
-        if (type(tdm) is not TensorDictModule or type(qmod) is not QValueModule
-                or list(tdm.out_keys) != [qmod.action_value_key]
-                or qmod.action_space not in ("categorical", "one_hot")
-                or qmod.out_keys[0] != self.tensor_keys.action
-                or qmod.out_keys[-1] != self.value_estimator.tensor_keys.value
-                or isinstance(tdm.module, TensorDictModule)):
+        tdm, qmod = parts
+        if (qmod.out_keys[0] != self.tensor_keys.action
+                or qmod.out_keys[-1] != self.value_estimator.tensor_keys.value):
             return None
         return tdm, qmod
 
