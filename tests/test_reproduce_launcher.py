@@ -281,9 +281,11 @@ def test_root_of_another_config_is_refused_before_any_job(tmp_path, capsys):
     assert reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_pn",
                            "--groups", "variants", "--dry-run", "--no-estimate",
                            "--root", str(tmp_path)]) == {}
-    # nor do runs that computed the same numbers another way (TorchRL's own DQNLoss)
+    # nor do runs that computed the same numbers another way (TorchRL's own DQNLoss, acting
+    # through TensorDictSequential)
     _write_run_config(tmp_path / "variants" / "cbn_v2" / "seed_0",
-                      [*full, "seed=0", "loss.stateful=false"], "cbn_v2")
+                      [*full, "seed=0", "loss.stateful=false", "collector.fused_acting=false"],
+                      "cbn_v2")
     assert reproduce.main(["--mode", "full", "--seeds", "1", "--variants", "cbn_v2",
                            "--groups", "variants", "--dry-run", "--no-estimate",
                            "--root", str(tmp_path)]) == {}
