@@ -174,8 +174,8 @@ class LoopConfig:
     seed: int = 0
     device: str = "cpu"
     progress: bool = False
-    fused_acting: bool = True
     overlap: bool = False
+    fused_acting: bool = True
 
     def __post_init__(self):
         def bad(name, expected):
