@@ -62,6 +62,17 @@ def test_same_outputs_and_random_draws_as_the_sequence(one_hot, batch, eps):
         assert explored > 0
 
 
+def test_state_dict_holds_the_actor_and_explorer_once():
+    actor, explorer = _policy()
+    fused = EGreedyQValuePolicy(actor, explorer)
+    keys = set(fused.state_dict())
+    assert keys == ({f"actor.{k}" for k in actor.state_dict()}
+                    | {f"explorer.{k}" for k in explorer.state_dict()})
+    other_actor, other_explorer = _policy(seed=1)
+    fused.load_state_dict(EGreedyQValuePolicy(other_actor, other_explorer).state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(actor.parameters(), other_actor.parameters()))
+
+
 def test_greedy_under_deterministic_exploration():
     actor, explorer = _policy(eps=1.0)
     fused = EGreedyQValuePolicy(actor, explorer)

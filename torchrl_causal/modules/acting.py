@@ -126,7 +126,9 @@ class EGreedyQValuePolicy(TensorDictModuleBase):
             raise ValueError(f"EGreedyQValuePolicy cannot fuse this policy: {why}")
         self.actor, self.explorer = actor, explorer
         tdm, qmod = qvalue_parts(actor)
-        self._tdm, self._qmod = tdm, qmod
+        # views into the actor (and the sequence below), kept out of the module tree so that
+        # the state dict holds each tensor once, under actor.* / explorer.*
+        self.__dict__["_tdm"], self.__dict__["_qmod"] = tdm, qmod
         self._action_func = qmod.action_func_mapping[qmod.action_space]
         self._value_func = qmod.action_value_func_mapping.get(qmod.action_space,
                                                               qmod._default_action_value)
@@ -138,7 +140,7 @@ class EGreedyQValuePolicy(TensorDictModuleBase):
         self._qspec = (qspec.get(qmod.out_keys[0], None) if isinstance(qspec, Composite)
                        else None)
         self._spec_ndim = len(qspec.shape) if isinstance(qspec, Composite) else 0
-        self._sequence = TensorDictSequential(actor, explorer)
+        self.__dict__["_sequence"] = TensorDictSequential(actor, explorer)
         self.in_keys = list(self._sequence.in_keys)
         self.out_keys = list(self._sequence.out_keys)
 
