@@ -340,8 +340,6 @@ def paired_ratio(ours, theirs) -> dict:
     """Per-repeat ratios ``ours[i] / theirs[i]`` (the runs of one repeat ran back to back,
     so a slow spell of the machine slows both), their geometric mean and its 95 % Student-t
     interval (on the log ratios; ``None`` with one repeat)."""
-    import math
-
     import numpy as np
     from results import mean_ci95
 
@@ -414,7 +412,8 @@ def main(argv=None) -> list[dict]:
             for r in range(a.repeats):
                 # eval.episodes=0: the loop's timed part then holds no greedy episodes
                 # (it evaluates once when the budget ends); SB3's timed learn() holds none
-                cfgs = {name: recipe_config(a.speed_frames, 0, 0, 1, Path(tmp) / f"speed{r}_{name}",
+                cfgs = {name: recipe_config(a.speed_frames, 0, 0, 1,
+                                            Path(tmp) / f"speed{r}_{name}",
                                             [f"loss.learning_starts={starts}", "eval.episodes=0",
                                              *extra, *a.override])
                         for name, extra in variants.items()}

@@ -282,7 +282,9 @@ def test_command_line_serves_any_client():
     from torchrl_causal.envs.tello_emulator import free_udp_port
 
     port = free_udp_port(host)
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    # PYTHONFAULTHANDLER: a SIGABRT prints every thread's stack (the diagnosis of a hang below)
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+           "PYTHONFAULTHANDLER": "1"}
     p = subprocess.Popen(
         [sys.executable, "-m", "torchrl_causal.envs.tello_emulator", "--host", host,
          "--command-port", str(port), "--video-size", "240x320", "--fps", "5"],
@@ -300,12 +302,20 @@ def test_command_line_serves_any_client():
     finally:
         p.send_signal(signal.SIGINT)
         try:
-            p.wait(timeout=20)
+            # about 1.5 s on a quiet machine; once in a CI run on a loaded one it took over
+            # 20 s: wait longer, and if it still hangs, have it print where it is stuck
+            p.wait(timeout=60)
         except subprocess.TimeoutExpired:  # pragma: no cover
-            p.kill()
-            p.wait()
+            p.send_signal(signal.SIGABRT)
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
         s.close()
-    assert p.returncode == 0
+    out = p.stdout.read()
+    assert p.returncode == 0, out[-6000:]
+    assert "stopping" in out
 
 
 def _noisy_flight(seed, time_scale, episodes=2, noise=True):

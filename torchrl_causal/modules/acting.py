@@ -114,7 +114,8 @@ class EGreedyQValuePolicy(TensorDictModuleBase):
         >>> fused = EGreedyQValuePolicy(actor, explorer)
         >>> td = TensorDict({"obs": torch.randn(16, 3)}, [16])
         >>> _ = torch.manual_seed(0); a = fused(td.clone())["action"]
-        >>> _ = torch.manual_seed(0); b = TensorDictSequential(actor, explorer)(td.clone())["action"]
+        >>> sequence = TensorDictSequential(actor, explorer)
+        >>> _ = torch.manual_seed(0); b = sequence(td.clone())["action"]
         >>> bool((a == b).all())
         True
     """
