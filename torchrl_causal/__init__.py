@@ -6,7 +6,7 @@ Subpackages:
     * :mod:`torchrl_causal.perception` -- goal detectors and the goal measurement.
     * :mod:`torchrl_causal.transforms` -- the feature transforms (``causal_state``).
     * :mod:`torchrl_causal.causal` -- expert CBNs, structure learning, compiled inference.
-    * :mod:`torchrl_causal.modules` -- the thesis Q-network and the CBN gate.
+    * :mod:`torchrl_causal.modules` -- the thesis Q-network, the CBN gate, the acting policy.
     * :mod:`torchrl_causal.data` -- the replay-buffer hook that feeds causal learning.
     * :mod:`torchrl_causal.training` -- Algorithm 1 (``DQNLoop``), evaluation, run records.
     * :mod:`torchrl_causal.pretrained` -- shipped trained policies (``load_policy``).
