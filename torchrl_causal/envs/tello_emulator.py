@@ -79,6 +79,7 @@ import logging
 import math
 import os
 import queue
+import signal
 import socket
 import threading
 import time
@@ -1117,8 +1118,12 @@ class TelloEmulator:
 
 
 # ---------------------------------------------------------------------- command line
+def _stop_on_signal(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv=None) -> int:
-    """``python -m torchrl_causal.envs.tello_emulator``: serve until Ctrl-C."""
+    """``python -m torchrl_causal.envs.tello_emulator``: serve until Ctrl-C (or ``kill``)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--host", default="127.0.0.2", help="address to bind (default 127.0.0.2)")
     p.add_argument("--command-port", type=int, default=8889)
@@ -1137,6 +1142,12 @@ def main(argv=None) -> int:
     except ValueError:
         p.error(f"--video-size must look like 720x960, got {a.video_size!r}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    # SIGINT (Ctrl-C, kill -INT) and SIGTERM (kill) stop it cleanly. Python installs its
+    # KeyboardInterrupt handler only where SIGINT was not ignored at start-up, and a process
+    # started in the background or by a worker that ignores SIGINT inherits the ignoring: the
+    # server then could not be stopped but by SIGKILL
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _stop_on_signal)
     emu = TelloEmulator(a.host, command_port=a.command_port, state_port=a.state_port,
                         video_port=a.video_port, env_options={"layout": a.layout},
                         video_size=(h, w), fps=a.fps, time_scale=a.time_scale,
