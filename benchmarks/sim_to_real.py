@@ -180,10 +180,10 @@ def main(argv=None) -> list[dict]:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.fresh_hits == "on" and a.map == "exact":
         p.error("--fresh-hits needs the estimated map, got --map exact")
-    if a.height_margin is not None and not 0.0 <= a.height_margin <= 0.5:
-        p.error(f"--height-margin must be a distance in [0, 0.5] m, got {a.height_margin:g}")
-    if a.mirror_check is not None and not 0.0 <= a.mirror_check <= 1.0:
-        p.error(f"--mirror-check must be a distance in [0, 1] m, got {a.mirror_check:g}")
+    for flag, value in (("--height-margin", a.height_margin), ("--mirror-check", a.mirror_check)):
+        why = None if value is None else fly_tello.head_distance_error(flag, value)
+        if why is not None:  # fly_tello's own bounds, before the first flight
+            p.error(why)
     if a.goal_size is not None:
         from torchrl_causal.envs.layouts import check_goal_size
 

@@ -364,16 +364,16 @@ def parse_args(argv=None):
     a.segment_slack = _auto_distance(p, "--segment-slack", "distance", a.segment_slack,
                                      SEGMENT_SLACK if a.lost_board == "ask" else None)
     if explicit:  # the board plane's segments are checked too
-        _head_distance(p, a, "--segment-slack", a.segment_slack, 1.0,
+        _head_distance(p, a, "--segment-slack", a.segment_slack,
                        "checks the arrival head's segments", learned=False)
     if a.height_margin is not None:
-        _head_distance(p, a, "--height-margin", a.height_margin, 0.5,
+        _head_distance(p, a, "--height-margin", a.height_margin,
                        "widens the learned arrival head's rule")
     explicit = a.mirror_check not in ("auto", "none")
     a.mirror_check = _auto_distance(p, "--mirror-check", "distance", a.mirror_check,
                                     MIRROR_CHECK if a.lost_board == "ask" else None)
     if explicit:
-        _head_distance(p, a, "--mirror-check", a.mirror_check, 1.0,
+        _head_distance(p, a, "--mirror-check", a.mirror_check,
                        "asks the learned arrival head twice")
     if a.lost_board == "ask":
         if a.arrival_head in (None, "depth"):
@@ -485,14 +485,27 @@ def _auto_distance(p, flag: str, what: str, value: str, auto: float | None) -> f
         p.error(f"{flag} must be a {what} (m), 'auto' or 'none', got {value!r}")
 
 
-def _head_distance(p, a, flag: str, value: float, high: float, does: str,
-                   learned: bool = True) -> None:
+#: The largest length (m) each arrival-head option takes (``benchmarks/sim_to_real.py``
+#: checks its pass-through options against the same bounds).
+HEAD_DISTANCE_MAX = {"--segment-slack": 1.0, "--height-margin": 0.5, "--mirror-check": 1.0}
+
+
+def head_distance_error(flag: str, value: float) -> str | None:
+    """Why ``value`` is not a length ``flag`` takes (``HEAD_DISTANCE_MAX``), or None."""
+    high = HEAD_DISTANCE_MAX[flag]
+    if not 0.0 <= value <= high:
+        return f"{flag} must be a distance in [0, {high:g}] m, got {value:g}"
+    return None
+
+
+def _head_distance(p, a, flag: str, value: float, does: str, learned: bool = True) -> None:
     """An arrival-head option's length (m): refused without the head (``learned``: also with
-    the depth map's board plane, ``--arrival-head depth``) or outside ``[0, high]``."""
+    the depth map's board plane, ``--arrival-head depth``) or outside its range."""
     if a.arrival_head is None or (learned and a.arrival_head == "depth"):
         p.error(f"{flag} {value:g} {does}: it needs the head")
-    if not 0.0 <= value <= high:
-        p.error(f"{flag} must be a distance in [0, {high:g}] m, got {value:g}")
+    why = head_distance_error(flag, value)
+    if why is not None:
+        p.error(why)
 
 
 def head_applies(args) -> str | None:

@@ -138,21 +138,22 @@ class EGreedyQValuePolicy(TensorDictModuleBase):
         # QValueModule reshapes the action to its spec's per-sample shape: the fused path
         # checks that no reshape is due (else it runs the sequence itself)
         qspec = qmod.spec
-        self._qspec = (qspec.get(qmod.out_keys[0], None) if isinstance(qspec, Composite)
+        action_spec = (qspec.get(qmod.out_keys[0], None) if isinstance(qspec, Composite)
                        else None)
-        self._spec_ndim = len(qspec.shape) if isinstance(qspec, Composite) else 0
+        # the action's per-sample shape QValueModule enforces (None: it enforces none)
+        self._per_sample = (action_spec.shape[len(qspec.shape):]
+                            if action_spec is not None and qmod.strict_shape is not False
+                            else None)
         self.__dict__["_sequence"] = TensorDictSequential(actor, explorer)
         self.in_keys = list(self._sequence.in_keys)
         self.out_keys = list(self._sequence.out_keys)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tdm, qmod = self._tdm, self._qmod
+        tdm = self._tdm
         values = tdm.module(*(tensordict.get(k) for k in tdm.in_keys))
         action = self._action_func(values)
-        if self._qspec is not None and qmod.strict_shape is not False:
-            per_sample = self._qspec.shape[self._spec_ndim:]
-            if action.shape != values.shape[:-1] + per_sample:
-                return self._sequence(tensordict)  # QValueModule reshapes or raises
+        if self._per_sample is not None and action.shape != values.shape[:-1] + self._per_sample:
+            return self._sequence(tensordict)  # QValueModule reshapes or raises
         chosen = self._value_func(values, action)
         if exploration_type() in (ExplorationType.RANDOM, None):
             eps = self.explorer.eps
