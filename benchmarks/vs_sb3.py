@@ -21,12 +21,16 @@ Figures (one JSON object each):
 * ``frames_per_second``: each library trains ``--speed-frames`` frames with no
   evaluation, the runs alternated ``--repeats`` times in this one process;
   the medians and their ratio (target of the "thesis protocol" issue:
-  ``DQNLoop`` >= SB3). Two more loop runs per repeat: ``dqnloop_dqnloss``, the loop
+  ``DQNLoop`` >= SB3). More runs per repeat (``--arms``, default all):
+  ``dqnloop_dqnloss``, the loop
   with TorchRL's own ``DQNLoss`` (``loss.stateful=false``) instead of its
-  ``StatefulDQNLoss`` (the same numbers bit for bit, with per-call parameter swaps), and
+  ``StatefulDQNLoss`` (the same numbers bit for bit, with per-call parameter swaps);
   ``dqnloop_sequential_acting``, the loop acting through ``TensorDictSequential(actor,
   explorer)`` (``collector.fused_acting=false``) instead of its ``EGreedyQValuePolicy``
-  (the same actions bit for bit).
+  (the same actions bit for bit); ``dqnloop_unfused_adam``, the loop with PyTorch's
+  default Adam path (``optim.fused=false``) instead of the fused kernel; and
+  ``sb3_fused_adam``, SB3 with its Adam fused too (``optimizer_kwargs``), so that the
+  optimiser's kernel is not what the comparison measures.
   ``paired_*``: the per-repeat ratios, their geometric mean and its 95 % interval
   (the runs of one repeat are back to back, so a slow spell of the machine slows both);
 * ``first_success`` (per library): over ``--seeds``, the frames of the first
@@ -47,6 +51,7 @@ Figures (one JSON object each):
     python benchmarks/vs_sb3.py                               # speed + 3 seeds x 12,000 frames
     python benchmarks/vs_sb3.py --seeds 0 --frames 4000 --speed-frames 1000   # a quick look
     python benchmarks/vs_sb3.py --seeds --speed-frames 0 --overheads 1200     # overheads only
+    python benchmarks/vs_sb3.py --seeds --arms sb3_fused_adam --repeats 9     # four runs a repeat
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
 """
@@ -69,6 +74,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
+
+
+#: The speed figure's runs: ``DQNLoop`` as the recipe runs it, three variants of it (each with
+#: one implementation choice set back), SB3's DQN as it comes and with its Adam fused.
+SPEED_ARMS = ("dqnloop", "dqnloop_dqnloss", "dqnloop_sequential_acting", "dqnloop_unfused_adam",
+              "sb3", "sb3_fused_adam")
 
 
 def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, out: Path,
@@ -118,8 +129,10 @@ def run_dqnloop(cfg) -> dict:
     return {"fps": float(summary["loop_frames_per_second"]), "evals": evals, "final": final}
 
 
-def sb3_model(cfg, env, seed: int):
-    """SB3's DQN with the recipe's settings and the same Q-network."""
+def sb3_model(cfg, env, seed: int, fused: bool = False):
+    """SB3's DQN with the recipe's settings and the same Q-network (``fused``: its Adam
+    with PyTorch's fused kernel, as ``DQNLoop``'s default optimiser is; SB3's default is
+    PyTorch's default path)."""
     import gymnasium as gym
     import torch
     from stable_baselines3 import DQN
@@ -154,7 +167,8 @@ def sb3_model(cfg, env, seed: int):
         max_grad_norm=float(cfg.loss.max_grad_norm), seed=seed, device="cpu", verbose=0,
         policy_kwargs=dict(net_arch=[256, 256], activation_fn=torch.nn.ReLU,
                            features_extractor_class=ScaledFeatures,
-                           optimizer_kwargs=dict(eps=float(cfg.optim.eps))),
+                           optimizer_kwargs=dict(eps=float(cfg.optim.eps),
+                                                 **({"fused": True} if fused else {}))),
     )
 
 
@@ -183,14 +197,14 @@ def greedy_success(model, env, episodes: int) -> float:
     return wins / episodes
 
 
-def run_sb3(cfg, seed: int, eval_every: int, eval_episodes: int) -> dict:
+def run_sb3(cfg, seed: int, eval_every: int, eval_episodes: int, fused: bool = False) -> dict:
     from stable_baselines3.common.callbacks import BaseCallback
 
     import torch
 
     torch.set_num_threads(1)
     env, eval_env = sb3_env(cfg), sb3_env(cfg)
-    model = sb3_model(cfg, env, seed)
+    model = sb3_model(cfg, env, seed, fused=fused)
     frames = int(cfg.collector.total_frames)
     evals = []
 
@@ -381,10 +395,17 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--repeats", type=int, default=2, help="speed runs per library, alternated")
     p.add_argument("--overheads", type=int, default=0,
                    help="frames per stepping run of the overheads figures (0: skip them)")
+    p.add_argument("--arms", nargs="+", default=list(SPEED_ARMS), metavar="ARM",
+                   help=f"the speed figure's runs, each repeat (default: all of {SPEED_ARMS}; "
+                        "dqnloop and sb3 always run)")
     p.add_argument("--override", action="append", default=[],
                    help="a recipe override for every run of both libraries (repeatable), "
                         "e.g. loss.learning_starts=200")
     a = p.parse_args(argv)
+    bad = [arm for arm in a.arms if arm not in SPEED_ARMS]
+    if bad:
+        p.error(f"--arms: unknown {bad}; choose from {SPEED_ARMS}")
+    a.arms = sorted({"dqnloop", "sb3", *a.arms}, key=SPEED_ARMS.index)
     for name in ("frames", "eval_every", "eval_episodes", "repeats"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
@@ -406,8 +427,12 @@ def main(argv=None) -> list[dict]:
             # TensorDictSequential(actor, explorer) (collector.fused_acting=false: the same
             # actions, three tensordict modules a call)
             variants = {"dqnloop": [], "dqnloop_dqnloss": ["loss.stateful=false"],
-                        "dqnloop_sequential_acting": ["collector.fused_acting=false"]}
-            fps = {k: [] for k in (*variants, "sb3")}
+                        "dqnloop_sequential_acting": ["collector.fused_acting=false"],
+                        "dqnloop_unfused_adam": ["optim.fused=false"]}
+            variants = {k: v for k, v in variants.items() if k in a.arms}
+            sb3_arms = {k: k == "sb3_fused_adam" for k in ("sb3", "sb3_fused_adam")
+                        if k in a.arms}
+            fps = {k: [] for k in (*variants, *sb3_arms)}
             starts = min(1000, a.speed_frames // 3)
             for r in range(a.repeats):
                 # eval.episodes=0: the loop's timed part then holds no greedy episodes
@@ -419,18 +444,19 @@ def main(argv=None) -> list[dict]:
                         for name, extra in variants.items()}
                 for name, cfg in cfgs.items():
                     fps[name].append(run_dqnloop(cfg)["fps"])
-                fps["sb3"].append(run_sb3(cfgs["dqnloop"], 0, 0, 1)["fps"])
+                for name, fused in sb3_arms.items():
+                    fps[name].append(run_sb3(cfgs["dqnloop"], 0, 0, 1, fused=fused)["fps"])
             med = {k: statistics.median(v) for k, v in fps.items()}
             rows.append({"bench": "vs_sb3", "figure": "frames_per_second",
                          "frames": a.speed_frames, "repeats": a.repeats,
                          **{k: [round(v, 1) for v in fps[k]] for k in fps},
                          **{f"{k}_median": round(v, 1) for k, v in med.items()},
-                         **{f"ratio_{k}_over_sb3": round(med[k] / med["sb3"], 3)
-                            for k in variants},
-                         **{f"paired_{k}_over_sb3": paired_ratio(fps[k], fps["sb3"])
-                            for k in variants},
+                         **{f"ratio_{k}_over_{b}": round(med[k] / med[b], 3)
+                            for k in variants for b in sb3_arms},
+                         **{f"paired_{k}_over_{b}": paired_ratio(fps[k], fps[b])
+                            for k in variants for b in sb3_arms},
                          **{f"paired_dqnloop_over_{k}": paired_ratio(fps["dqnloop"], fps[k])
-                            for k in variants if k != "dqnloop"}})
+                            for k in variants if k != "dqnloop" and "dqnloop" in variants}})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
             cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)

@@ -32,7 +32,7 @@ import torch
 
 from torchrl_causal.envs.control import TELLO_MOVE_NOISE
 from torchrl_causal.envs.rewards import REWARDS  # ``env.reward`` names: the env's own
-from torchrl_causal.training import RUN_FILES
+from torchrl_causal.training import OPTIMIZERS, RUN_FILES
 
 __all__ = [
     "Variant",
@@ -118,7 +118,6 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb", "none")
 PRESETS = ("default", "thesis")
 #: ``loss.function`` -> the ``loss_function`` of :class:`torchrl.objectives.DQNLoss`.
 LOSS_FUNCTIONS = {"huber": "smooth_l1", "l2": "l2"}
-OPTIMIZERS = ("adam", "rmsprop")
 #: ``loss.reward_scale: null`` -> the scale for each reward (keeps TD targets O(1..10)).
 AUTO_REWARD_SCALE = {"progress": 1.0, "thesis": 0.01}
 
@@ -141,6 +140,13 @@ def _get(cfg: Mapping, dotted: str, default: Any = None) -> Any:
             return default
         node = node[part]
     return node
+
+
+def optim_fused(cfg: Mapping) -> bool | None:
+    """``optim.fused`` as :func:`~torchrl_causal.training.dqn_optimizer` takes it: ``auto``
+    (or a config from before the key) -> ``None``, else the bool."""
+    fused = _get(cfg, "optim.fused", "auto")
+    return None if fused == "auto" else fused
 
 
 def _require(cond: bool, option: str, value: Any, expected: str) -> None:
@@ -262,6 +268,11 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     _require(fn in LOSS_FUNCTIONS, "loss.function", fn, f"one of {sorted(LOSS_FUNCTIONS)}")
     opt = _get(cfg, "optim.name")
     _require(opt in OPTIMIZERS, "optim.name", opt, f"one of {OPTIMIZERS}")
+    fused = _get(cfg, "optim.fused", "auto")
+    _require(fused == "auto" or isinstance(fused, bool), "optim.fused", fused,
+             "auto (Adam's fused kernel where it runs), true or false")
+    _require(not (fused is True and opt == "rmsprop"), "optim.fused", fused,
+             "auto or false with optim.name=rmsprop (PyTorch's RMSprop has no fused kernel)")
     kb = _get(cfg, "eval.keep_best")
     _require(isinstance(kb, bool), "eval.keep_best", kb, "true or false")
     fe = _get(cfg, "eval.final_episodes")

@@ -420,8 +420,9 @@ RUN_ONLY_KEYS = ("seed", "device", "threads", "progress", "output_dir", "checkpo
                  "logger", "outputs")
 #: Nested keys that choose how the same numbers are computed (``loss.stateful``: the two
 #: losses give the same runs bit for bit, ``tests/test_stateful_loss.py``;
-#: ``collector.fused_acting``: the same actions, ``tests/test_acting.py``).
-IMPLEMENTATION_KEYS = ("loss.stateful", "collector.fused_acting")
+#: ``collector.fused_acting``: the same actions, ``tests/test_acting.py``; ``optim.fused``:
+#: the same Adam, rounded differently).
+IMPLEMENTATION_KEYS = ("loss.stateful", "collector.fused_acting", "optim.fused")
 
 
 #: Config keys added after runs were made, with the value that computes what their

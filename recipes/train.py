@@ -169,20 +169,18 @@ def build_loss(cfg: DictConfig, actor, env):
     """The DQN loss (TorchRL's ``DQNLoss``; with ``loss.stateful``, the default, the same
     loss bit for bit without per-call parameter swaps:
     :class:`~torchrl_causal.training.StatefulDQNLoss`) + its value estimator, and the
-    optimiser the preset names."""
+    optimiser the preset names (:func:`~torchrl_causal.training.dqn_optimizer`; Adam fused
+    where it runs, ``optim.fused``)."""
     from torchrl.objectives import DQNLoss
 
-    from torchrl_causal.training import StatefulDQNLoss
+    from torchrl_causal.training import StatefulDQNLoss, dqn_optimizer
 
     cls = StatefulDQNLoss if cfg.loss.get("stateful", True) else DQNLoss
     loss = cls(actor, loss_function=ru.LOSS_FUNCTIONS[cfg.loss.function], delay_value=True,
                double_dqn=cfg.loss.double_dqn, action_space=env.action_spec_unbatched)
     loss.make_value_estimator(gamma=cfg.loss.gamma)
-    if cfg.optim.name == "adam":
-        optim = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps)
-    else:
-        optim = torch.optim.RMSprop(loss.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps,
-                                    alpha=cfg.optim.alpha)
+    optim = dqn_optimizer(loss.parameters(), cfg.optim.name, lr=cfg.optim.lr, eps=cfg.optim.eps,
+                          alpha=cfg.optim.alpha, fused=ru.optim_fused(cfg))
     return loss, optim
 
 

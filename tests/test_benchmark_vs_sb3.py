@@ -30,6 +30,10 @@ def test_same_network_and_settings_on_both_sides(tmp_path, monkeypatch):
     assert model.train_freq.frequency == 4 and model.gradient_steps == 1  # 0.25 updates/frame
     assert model.target_update_interval == 250 * 4 and model.batch_size == 32
     assert model.learning_starts == cfg.loss.learning_starts
+    assert not model.policy.optimizer.defaults["fused"]  # SB3 as it comes: PyTorch's default
+    fused = bench.sb3_model(cfg, env, 0, fused=True)  # the arm beside DQNLoop's fused Adam
+    assert fused.policy.optimizer.defaults["fused"] is True
+    assert fused.policy.optimizer.defaults["eps"] == model.policy.optimizer.defaults["eps"]
     env.close()
 
 
@@ -43,9 +47,11 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
                           "--override", "env.max_steps=40"])
     speed = rows[0]
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
-    for name in ("dqnloop_dqnloss", "dqnloop_sequential_acting"):
+    for name in ("dqnloop_dqnloss", "dqnloop_sequential_acting", "dqnloop_unfused_adam"):
         assert speed[f"{name}_median"] > 0 and len(speed[name]) == speed["repeats"]
         assert len(speed[f"paired_dqnloop_over_{name}"]["per_repeat"]) == speed["repeats"]
+    assert speed["sb3_fused_adam_median"] > 0
+    assert len(speed["paired_dqnloop_over_sb3_fused_adam"]["per_repeat"]) == 1
     paired = speed["paired_dqnloop_over_sb3"]
     # one repeat: its ratio is the medians' (from the unrounded frames/s)
     assert paired["per_repeat"] == [speed["ratio_dqnloop_over_sb3"]] == [paired["geomean"]]
@@ -56,6 +62,10 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
         assert len(r["final_success"]) == 1 and 0.0 <= r["final_success"][0] <= 1.0
     with pytest.raises(SystemExit):
         _bench().main(["--frames", "0"])
+    with pytest.raises(SystemExit):
+        _bench().main(["--arms", "sb3_turbo"])
+    err = capsys.readouterr().err
+    assert "--arms: unknown ['sb3_turbo']" in err
 
 
 def test_paired_ratio():

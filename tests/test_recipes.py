@@ -65,6 +65,9 @@ def test_every_variant_config_is_valid(name, tmp_path):
         ("env.reward=bogus", "env.reward='bogus'"),
         ("loss.function=l1", "loss.function='l1'"),
         ("optim.name=sgd", "optim.name='sgd'"),
+        ("optim.fused=yes", "optim.fused='yes'"),
+        ("optim.fused=1", "optim.fused=1"),
+        ("preset=thesis optim.fused=true", "optim.fused=True"),
         ("loss.reward_scale=-1", "loss.reward_scale=-1"),
         ("eval.keep_best=3", "eval.keep_best=3"),
         ("loss.learning_starts=20000", "loss.learning_starts=20000"),
@@ -84,7 +87,7 @@ def test_bad_input_fails_before_training(override, needle, tmp_path):
     out = tmp_path / "run"
     # the noise preset beside an option it sets itself is a clash
     extra = ["env.noise=tello"] if override.startswith("+env.options") else []
-    cfg = _cfg("cbn_v2", [f"output_dir={out}", override, *extra])
+    cfg = _cfg("cbn_v2", [f"output_dir={out}", *override.split(" "), *extra])
     with pytest.raises(ValueError, match="Invalid option") as err:
         train.train(cfg)
     assert needle in str(err.value)

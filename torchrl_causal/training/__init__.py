@@ -6,6 +6,8 @@
   (:mod:`torchrl_causal.training.loop`).
 * :class:`StatefulDQNLoss` -- TorchRL's ``DQNLoss``, bit for bit, without its
   per-call parameter swaps (:mod:`torchrl_causal.training.loss`).
+* :func:`dqn_optimizer` / :func:`fused_supported` -- Adam (fused where it runs) or
+  the thesis's RMSprop (:mod:`torchrl_causal.training.optim`).
 * :func:`evaluate` / :func:`seed_transforms` -- greedy evaluation
   (:mod:`torchrl_causal.training.evaluation`).
 * :class:`OracleImitation` / :class:`ImitationConfig` -- a teacher phase:
@@ -36,6 +38,7 @@ from torchrl_causal.training.flightmap import plot_flight_map, plot_flight_maps
 from torchrl_causal.training.imitation import ImitationConfig, OracleImitation, margin_loss
 from torchrl_causal.training.loop import RUN_FILES, DQNLoop, LoopConfig
 from torchrl_causal.training.loss import StatefulDQNLoss
+from torchrl_causal.training.optim import OPTIMIZERS, dqn_optimizer, fused_supported
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 from torchrl_causal.training.video import OUTCOME_LABELS, record_episodes
 
@@ -43,6 +46,9 @@ __all__ = [
     "DQNLoop",
     "LoopConfig",
     "StatefulDQNLoss",
+    "OPTIMIZERS",
+    "dqn_optimizer",
+    "fused_supported",
     "RUN_FILES",
     "evaluate",
     "spl_of",

@@ -33,7 +33,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 
 __all__ = ["ImitationConfig", "OracleImitation", "margin_loss"]
 

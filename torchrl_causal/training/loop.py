@@ -61,6 +61,7 @@ import torch
 from torchrl_causal.data.checkpoint import install_filled_rows_checkpointer
 from torchrl_causal.modules.acting import acting_policy
 from torchrl_causal.training.evaluation import OUTCOME_KEYS, evaluate, seed_transforms
+from torchrl_causal.training.optim import dqn_optimizer
 from torchrl_causal.training.records import EpisodeCSV, atomic_save, rng_state, set_rng_state
 
 __all__ = ["DQNLoop", "LoopConfig", "RUN_FILES"]
@@ -96,7 +97,8 @@ class LoopConfig:
         gamma: discount (the default loss only).
         loss_function: ``"smooth_l1"`` (Huber), ``"l2"`` (thesis) or ``"l1"`` (the default loss only).
         double_dqn: Double DQN targets (the default loss only).
-        lr: Adam learning rate (the default optimiser only).
+        lr: Adam learning rate (the default optimiser only: :func:`~torchrl_causal.training.dqn_optimizer`,
+            fused where PyTorch's kernel runs).
         max_grad_norm: gradient-norm clip (``None``: no clip).
         reward_scale: rewards are multiplied by this inside the loss only.
         eval_interval_frames: frames between greedy evaluations (0: only at the end).
@@ -344,7 +346,8 @@ class DQNLoop:
         loss: a :class:`~torchrl.objectives.DQNLoss` (default: a
             :class:`~torchrl_causal.training.StatefulDQNLoss`, the same loss bit for bit,
             built on ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
-        optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``).
+        optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``, fused where
+            it runs: :func:`~torchrl_causal.training.dqn_optimizer`).
         replay_buffer: a :class:`~torchrl.data.TensorDictReplayBuffer` (default:
             ``LazyTensorStorage(config.buffer_size)`` on ``config.device``).
         eval_envs: ``{name: env or zero-argument factory}``; the first is
@@ -435,7 +438,7 @@ class DQNLoop:
                                    action_space=env.action_spec_unbatched)
             loss.make_value_estimator(gamma=cfg.gamma)
         self.loss = loss
-        self.optimizer = optimizer or torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+        self.optimizer = optimizer or dqn_optimizer(loss.parameters(), lr=cfg.lr)
         self.updater = HardUpdate(loss, value_network_update_interval=cfg.target_update_interval)
         self.output_dir = Path(output_dir).expanduser().resolve() if output_dir else None
         self.paths = ({k: self.output_dir / v for k, v in RUN_FILES.items()}

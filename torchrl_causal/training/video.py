@@ -34,7 +34,6 @@ to ``path`` when the video is complete.
 from __future__ import annotations
 
 import copy
-import math
 import os
 from pathlib import Path
 
