@@ -144,8 +144,9 @@ def _get(cfg: Mapping, dotted: str, default: Any = None) -> Any:
 
 def optim_fused(cfg: Mapping) -> bool | None:
     """``optim.fused`` as :func:`~torchrl_causal.training.dqn_optimizer` takes it: ``auto``
-    (or a config from before the key) -> ``None``, else the bool."""
-    fused = _get(cfg, "optim.fused", "auto")
+    -> ``None``, else the bool. A stored config from before the key trained on PyTorch's
+    default path, so its absence reads ``False``, the default."""
+    fused = _get(cfg, "optim.fused", False)
     return None if fused == "auto" else fused
 
 

@@ -427,7 +427,7 @@ IMPLEMENTATION_KEYS = ("loss.stateful", "collector.fused_acting", "optim.fused")
 
 #: Config keys added after runs were made, with the value that computes what their
 #: absence did: a stored run without the key matches a grid that has this value.
-ADDED_KEYS = {"env.noise": "none"}
+ADDED_KEYS = {"env.noise": "none", "optim.fused": False}
 
 
 def _flatten(node, prefix: str = "") -> dict:

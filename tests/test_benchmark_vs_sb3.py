@@ -31,7 +31,7 @@ def test_same_network_and_settings_on_both_sides(tmp_path, monkeypatch):
     assert model.target_update_interval == 250 * 4 and model.batch_size == 32
     assert model.learning_starts == cfg.loss.learning_starts
     assert not model.policy.optimizer.defaults["fused"]  # SB3 as it comes: PyTorch's default
-    fused = bench.sb3_model(cfg, env, 0, fused=True)  # the arm beside DQNLoop's fused Adam
+    fused = bench.sb3_model(cfg, env, 0, fused=True)  # the arm beside the loop's fused Adam
     assert fused.policy.optimizer.defaults["fused"] is True
     assert fused.policy.optimizer.defaults["eps"] == model.policy.optimizer.defaults["eps"]
     env.close()
@@ -47,7 +47,7 @@ def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
                           "--override", "env.max_steps=40"])
     speed = rows[0]
     assert speed["figure"] == "frames_per_second" and speed["dqnloop_median"] > 0 < speed["sb3_median"]
-    for name in ("dqnloop_dqnloss", "dqnloop_sequential_acting", "dqnloop_unfused_adam"):
+    for name in ("dqnloop_dqnloss", "dqnloop_sequential_acting", "dqnloop_fused_adam"):
         assert speed[f"{name}_median"] > 0 and len(speed[name]) == speed["repeats"]
         assert len(speed[f"paired_dqnloop_over_{name}"]["per_repeat"]) == speed["repeats"]
     assert speed["sb3_fused_adam_median"] > 0

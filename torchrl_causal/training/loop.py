@@ -97,8 +97,7 @@ class LoopConfig:
         gamma: discount (the default loss only).
         loss_function: ``"smooth_l1"`` (Huber), ``"l2"`` (thesis) or ``"l1"`` (the default loss only).
         double_dqn: Double DQN targets (the default loss only).
-        lr: Adam learning rate (the default optimiser only: :func:`~torchrl_causal.training.dqn_optimizer`,
-            fused where PyTorch's kernel runs).
+        lr: Adam learning rate (the default optimiser only).
         max_grad_norm: gradient-norm clip (``None``: no clip).
         reward_scale: rewards are multiplied by this inside the loss only.
         eval_interval_frames: frames between greedy evaluations (0: only at the end).
@@ -346,8 +345,9 @@ class DQNLoop:
         loss: a :class:`~torchrl.objectives.DQNLoss` (default: a
             :class:`~torchrl_causal.training.StatefulDQNLoss`, the same loss bit for bit,
             built on ``actor`` from the config's ``loss_function``, ``double_dqn``, ``gamma``).
-        optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``, fused where
-            it runs: :func:`~torchrl_causal.training.dqn_optimizer`).
+        optimizer: over ``loss.parameters()`` (default: Adam with ``config.lr``; pass
+            ``dqn_optimizer(loss.parameters(), lr=..., fused=None)`` for PyTorch's fused
+            kernel: :func:`~torchrl_causal.training.dqn_optimizer`).
         replay_buffer: a :class:`~torchrl.data.TensorDictReplayBuffer` (default:
             ``LazyTensorStorage(config.buffer_size)`` on ``config.device``).
         eval_envs: ``{name: env or zero-argument factory}``; the first is

@@ -4,9 +4,14 @@ PyTorch's Adam updates the parameters one tensor at a time on the CPU unless tol
 otherwise (its ``foreach`` path is the default on GPUs only); ``fused=True`` runs one
 kernel for all of them, on the CPU as on a GPU. It is the same algorithm -- the same
 moments, bias corrections and step -- computed in another order, so its numbers agree
-with the single-tensor path to float rounding, not bit for bit. On the recipes' small
-Q-networks it takes about a fifth off a gradient step on the CPU
-(``benchmarks/vs_sb3.py --overheads``; :doc:`/recipes`, "Beside Stable-Baselines3").
+with the single-tensor path to float rounding, not bit for bit. On the CPU it takes a
+fifth off a gradient step of the features network and a tenth off one of the image
+network (:doc:`/recipes`, "Beside Stable-Baselines3").
+
+It is opt-in (``fused=None`` or ``True`` here, ``optim.fused=auto`` in the recipe): a
+training run is chaotic, so rounding differently gives each seed another run, and the
+default path keeps every published run -- and ``make train``'s printed result --
+reproducible bit for bit.
 
 :func:`dqn_optimizer` builds what :class:`~torchrl_causal.training.DQNLoop` uses by
 default and what the recipe's ``optim`` group names.
@@ -47,7 +52,7 @@ def fused_supported(params: Iterable[torch.Tensor]) -> bool:
 
 def dqn_optimizer(params: Iterable[torch.Tensor], name: str = "adam", *, lr: float = 3e-4,
                   eps: float = 1e-8, alpha: float = 0.99,
-                  fused: bool | None = None) -> torch.optim.Optimizer:
+                  fused: bool | None = False) -> torch.optim.Optimizer:
     """The optimiser of a DQN's parameters.
 
     Args:
@@ -58,10 +63,10 @@ def dqn_optimizer(params: Iterable[torch.Tensor], name: str = "adam", *, lr: flo
         lr: learning rate (> 0).
         eps: the denominator's epsilon.
         alpha: RMSprop's smoothing constant (ignored by Adam).
-        fused: Adam's fused kernel. ``None`` (default): where :func:`fused_supported`;
-            ``True``: required (a clear error where it cannot run); ``False``: PyTorch's
-            default path. RMSprop has no fused kernel: ``True`` is refused, ``None``
-            means off.
+        fused: Adam's fused kernel. ``False`` (default): PyTorch's default path;
+            ``None``: the kernel where :func:`fused_supported`; ``True``: required (a
+            clear error where it cannot run). RMSprop has no fused kernel: ``True`` is
+            refused, ``None`` means off.
 
     Returns:
         The optimiser.
@@ -75,9 +80,11 @@ def dqn_optimizer(params: Iterable[torch.Tensor], name: str = "adam", *, lr: flo
         >>> import torch
         >>> from torchrl_causal.training import dqn_optimizer
         >>> net = torch.nn.Linear(9, 8)
-        >>> opt = dqn_optimizer(net.parameters(), lr=1e-3)
+        >>> opt = dqn_optimizer(net.parameters(), lr=1e-3, fused=None)  # where it runs
         >>> type(opt).__name__, opt.defaults["fused"]
         ('Adam', True)
+        >>> dqn_optimizer(net.parameters(), lr=1e-3).defaults["fused"] is None  # default path
+        True
         >>> dqn_optimizer(net.parameters(), "rmsprop", lr=2.5e-4).defaults["alpha"]
         0.99
     """
