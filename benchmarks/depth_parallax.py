@@ -19,7 +19,6 @@ and their minimum. One JSON object per image size: ``abs_rel_near_*`` (mean over
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 
