@@ -51,7 +51,7 @@ Figures (one JSON object each):
     python benchmarks/vs_sb3.py                               # speed + 3 seeds x 12,000 frames
     python benchmarks/vs_sb3.py --seeds 0 --frames 4000 --speed-frames 1000   # a quick look
     python benchmarks/vs_sb3.py --seeds --speed-frames 0 --overheads 1200     # overheads only
-    python benchmarks/vs_sb3.py --seeds --arms sb3_fused_adam --repeats 9     # four runs a repeat
+    python benchmarks/vs_sb3.py --seeds --arms dqnloop_fused_adam sb3_fused_adam --repeats 9  # 4 runs a repeat
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
 """
