@@ -269,7 +269,7 @@ def validate_config(cfg: Mapping, output_dir: str | os.PathLike) -> Variant:
     _require(fn in LOSS_FUNCTIONS, "loss.function", fn, f"one of {sorted(LOSS_FUNCTIONS)}")
     opt = _get(cfg, "optim.name")
     _require(opt in OPTIMIZERS, "optim.name", opt, f"one of {OPTIMIZERS}")
-    fused = _get(cfg, "optim.fused", "auto")
+    fused = _get(cfg, "optim.fused", False)  # absent: a config from before the key
     _require(fused == "auto" or isinstance(fused, bool), "optim.fused", fused,
              "auto (Adam's fused kernel where it runs), true or false")
     _require(not (fused is True and opt == "rmsprop"), "optim.fused", fused,

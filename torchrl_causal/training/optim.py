@@ -100,10 +100,11 @@ def dqn_optimizer(params: Iterable[torch.Tensor], name: str = "adam", *, lr: flo
             raise ValueError("Invalid fused=True with name='rmsprop': PyTorch's RMSprop has "
                              "no fused kernel (use fused=None or False)")
         return torch.optim.RMSprop(params, lr=lr, eps=eps, alpha=alpha)
+    if fused is False:
+        return torch.optim.Adam(params, lr=lr, eps=eps)
     can = fused_supported(params)
     if fused and not can:
         kinds = sorted({f"{p.dtype} on {p.device.type}" for p in params}) or ["no parameters"]
         raise ValueError(f"Invalid fused=True: Adam's fused kernel does not take these "
                          f"parameters ({', '.join(kinds)}); use fused=None or False")
-    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True if can and fused is not False
-                            else None)
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True if can else None)
