@@ -45,6 +45,14 @@ Figures (one JSON object each):
   TorchRL's ``DQNLoss`` update with Adam single-tensor / ``foreach`` / ``fused``, the loop's
   ``StatefulDQNLoss``, and the
   same network, batch, Huber loss, clip and Adam written as plain PyTorch).
+* with ``--calls N``, ``calls_per_frame``: each library trains N frames once while a
+  ``sys.setprofile`` hook counts every Python-level function call (C built-ins included)
+  in the loop's ``DQNLoop.run`` / SB3's ``learn``; the counts per frame, in total, by
+  phase (the env's step, acting, storing, the update, the rest), by the package a
+  function lives in, the functions the loop calls most more often than SB3 and each
+  library's most called functions in its ``rest`` phase. A count does not depend on how
+  busy the machine is, so it shows where the loop does more work than SB3 where timings
+  on a noisy machine cannot.
 
 ::
 
@@ -52,6 +60,7 @@ Figures (one JSON object each):
     python benchmarks/vs_sb3.py --seeds 0 --frames 4000 --speed-frames 1000   # a quick look
     python benchmarks/vs_sb3.py --seeds --speed-frames 0 --overheads 1200     # overheads only
     python benchmarks/vs_sb3.py --seeds --arms dqnloop_fused_adam sb3_fused_adam --repeats 9  # 4 runs a repeat
+    python benchmarks/vs_sb3.py --seeds --speed-frames 0 --calls 2000         # calls per frame only
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
 """
@@ -59,6 +68,7 @@ Needs the ``bench`` extra (``pip install -e '.[bench]'``: stable-baselines3).
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import io
 import json
@@ -350,6 +360,149 @@ def update_ms(cfg, updates: int) -> dict:
     return out
 
 
+def _package(path: str) -> str:
+    """The package a Python function lives in: a site-packages top-level name,
+    ``torchrl_causal`` or ``python`` (the standard library and the rest)."""
+    if "site-packages/" in path:
+        return path.split("site-packages/")[-1].split("/")[0].removesuffix(".py")
+    return "torchrl_causal" if "torchrl_causal" in path else "python"
+
+
+class _CallCounter:
+    """Counts every Python-level function call (``sys.setprofile``'s ``call`` and
+    ``c_call`` events) by the phase it runs under, by package and by function. A phase is
+    the innermost method :meth:`label` wrapped that is running (``rest`` outside them)."""
+
+    def __init__(self):
+        self.stack = ["rest"]
+        self.phases, self.packages = collections.Counter(), collections.Counter()
+        self.functions = collections.Counter()  # (phase, function)
+
+    def _event(self, frame, event, arg):
+        if event == "call":
+            code = frame.f_code
+            package = _package(code.co_filename)
+            function = f"{package}:{Path(code.co_filename).name}:{code.co_name}"
+        elif event == "c_call":
+            package = "builtins (C)"
+            function = f"C:{getattr(arg, '__qualname__', repr(arg))}"
+        else:
+            return
+        self.phases[self.stack[-1]] += 1
+        self.packages[package] += 1
+        self.functions[self.stack[-1], function] += 1
+
+    def label(self, owner, name: str, phase: str):
+        """``mock.patch`` of ``owner.name`` that runs it under ``phase``."""
+        from unittest import mock
+
+        fn, stack = getattr(owner, name), self.stack
+
+        def wrapped(*args, **kwargs):
+            stack.append(phase)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                stack.pop()
+
+        return mock.patch.object(owner, name, wrapped)
+
+    @contextlib.contextmanager
+    def counting(self):
+        sys.setprofile(self._event)
+        try:
+            yield self
+        finally:
+            sys.setprofile(None)
+
+
+def call_counts(cfg, frames: int, top: int = 12) -> dict:
+    """Python function calls per frame while each library trains ``frames`` frames, by
+    phase, by package and by function: the loop's ``DQNLoop.run`` (no evaluation in it)
+    and SB3's ``learn`` (env and model built before). Phases: ``env`` (the TorchRL env's
+    ``step`` / ``reset``, which both libraries drive), ``acting`` (the policy, or the random
+    action before ``learning_starts``), ``update`` (the loop's ``_optimise``; SB3's
+    ``train``: sampling, loss, optimiser); the loop's ``step_mdp`` (the next step's input,
+    in ``step_and_maybe_reset``), ``postproc`` (the collector's scan of each batch for
+    private keys) and ``store`` (``_ingest``: buffer write and episode rows); SB3's
+    ``gym_wrapper`` (``DroneNavGymEnv`` around the env); and ``rest`` (the collector's or
+    SB3's own bookkeeping between them: the loop's stacking of each batch, SB3's buffer
+    write)."""
+    from unittest import mock
+
+    import train as train_recipe
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    from stable_baselines3.dqn import DQN
+    from torchrl.collectors import Collector
+    from torchrl.envs import EnvBase
+    from torchrl.envs.utils import _StepMDP
+
+    from torchrl_causal.envs.gym_registration import DroneNavGymEnv
+    from torchrl_causal.modules import EGreedyQValuePolicy
+    from torchrl_causal.training import DQNLoop
+
+    def env_phases(c):
+        return [c.label(EnvBase, "step", "env"), c.label(EnvBase, "reset", "env"),
+                c.label(EnvBase, "rand_action", "acting")]
+
+    loop = _CallCounter()
+    run = DQNLoop.run
+
+    def counted_run(self, *args, **kwargs):
+        with loop.counting():
+            return run(self, *args, **kwargs)
+
+    with contextlib.ExitStack() as stack:
+        for patch in (*env_phases(loop), loop.label(EGreedyQValuePolicy, "forward", "acting"),
+                      loop.label(DQNLoop, "_ingest", "store"),
+                      loop.label(DQNLoop, "_optimise", "update"),
+                      loop.label(_StepMDP, "__call__", "step_mdp"),
+                      loop.label(Collector, "_postproc", "postproc")):
+            stack.enter_context(patch)
+        stack.enter_context(contextlib.redirect_stdout(io.StringIO()))
+        stack.enter_context(mock.patch.object(DQNLoop, "run", counted_run))
+        train_recipe.train(cfg)
+    sb3 = _CallCounter()
+    env = sb3_env(cfg)
+    model = sb3_model(cfg, env, int(cfg.seed))
+    with contextlib.ExitStack() as stack:
+        for patch in (*env_phases(sb3), sb3.label(OffPolicyAlgorithm, "_sample_action", "acting"),
+                      sb3.label(DQN, "train", "update"),
+                      sb3.label(DroneNavGymEnv, "step", "gym_wrapper"),
+                      sb3.label(DroneNavGymEnv, "reset", "gym_wrapper")):
+            stack.enter_context(patch)
+        with sb3.counting():
+            model.learn(total_timesteps=frames)
+    env.close()
+
+    def per(counter):
+        return {k: round(v / frames, 1) for k, v in counter.most_common() if v / frames >= 0.05}
+
+    def total(counter):
+        out = collections.Counter()
+        for (_, function), n in counter.items():
+            out[function] += n
+        return out
+
+    def phase_top(counter, phase):
+        calls = collections.Counter({f: n for (p, f), n in counter.items() if p == phase})
+        return [[f, round(n / frames, 1)] for f, n in calls.most_common(top)]
+
+    lf, sf = total(loop.functions), total(sb3.functions)
+    extra = sorted(set(lf) | set(sf), key=lambda k: sf[k] - lf[k])[:top]
+    return {"dqnloop_total": round(sum(loop.phases.values()) / frames, 1),
+            "sb3_total": round(sum(sb3.phases.values()) / frames, 1),
+            "ratio_dqnloop_over_sb3": round(sum(loop.phases.values())
+                                            / max(1, sum(sb3.phases.values())), 3),
+            "dqnloop_by_phase": per(loop.phases), "sb3_by_phase": per(sb3.phases),
+            "dqnloop_by_package": per(loop.packages), "sb3_by_package": per(sb3.packages),
+            "dqnloop_more_than_sb3": [[k, round(lf[k] / frames, 1), round(sf[k] / frames, 1)]
+                                      for k in extra if lf[k] > sf[k]],
+            "dqnloop_top_in_rest": phase_top(loop.functions, "rest"),
+            "dqnloop_top_in_store": phase_top(loop.functions, "store"),
+            "sb3_top_in_rest": phase_top(sb3.functions, "rest")}
+
+
 def paired_ratio(ours, theirs) -> dict:
     """Per-repeat ratios ``ours[i] / theirs[i]`` (the runs of one repeat ran back to back,
     so a slow spell of the machine slows both), their geometric mean and its 95 % Student-t
@@ -395,6 +548,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--repeats", type=int, default=2, help="speed runs per library, alternated")
     p.add_argument("--overheads", type=int, default=0,
                    help="frames per stepping run of the overheads figures (0: skip them)")
+    p.add_argument("--calls", type=int, default=0,
+                   help="frames per library of the calls-per-frame figure (0: skip it)")
     p.add_argument("--arms", nargs="+", default=list(SPEED_ARMS), metavar="ARM",
                    help=f"the speed figure's runs, each repeat (default: all of {SPEED_ARMS}; "
                         "dqnloop and sb3 always run)")
@@ -409,7 +564,7 @@ def main(argv=None) -> list[dict]:
     for name in ("frames", "eval_every", "eval_episodes", "repeats"):
         if getattr(a, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
-    for name in ("speed_frames", "overheads"):
+    for name in ("speed_frames", "overheads", "calls"):
         if getattr(a, name) < 0:
             p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(a, name)}")
     try:
@@ -467,6 +622,15 @@ def main(argv=None) -> list[dict]:
             rows.append({"bench": "vs_sb3", "figure": "update", "unit": "ms",
                          "updates": max(1, a.overheads // 4), "batch": int(cfg.buffer.batch_size),
                          **update_ms(cfg, max(1, a.overheads // 4))})
+            print(json.dumps(rows[-1]), flush=True)
+        if a.calls:
+            starts = min(1000, a.calls // 3)
+            cfg = recipe_config(a.calls, 0, 0, 1, Path(tmp) / "calls",
+                                [f"loss.learning_starts={starts}", "eval.episodes=0",
+                                 "eval.final_episodes=0", *a.override])
+            rows.append({"bench": "vs_sb3", "figure": "calls_per_frame", "frames": a.calls,
+                         "unit": "Python function calls per frame",
+                         **call_counts(cfg, a.calls)})
             print(json.dumps(rows[-1]), flush=True)
         results = {"dqnloop": [], "sb3": []}
         for seed in a.seeds:

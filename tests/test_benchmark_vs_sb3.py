@@ -90,3 +90,29 @@ def test_overheads_figures(tmp_path, monkeypatch):
         assert 0 < update[key] < 1000
     with pytest.raises(SystemExit):
         _bench().main(["--overheads", "-1"])
+
+
+def test_calls_per_frame_figure(tmp_path, monkeypatch):
+    """--calls counts the Python calls of each library's training alone, by package."""
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    (row,) = _bench().main(["--seeds", "--speed-frames", "0", "--calls", "60",
+                            "--override", "env.max_steps=15",
+                            "--override", "loss.target_update_interval=5"])
+    assert row["figure"] == "calls_per_frame" and row["frames"] == 60
+    loop, sb3 = row["dqnloop_by_package"], row["sb3_by_package"]
+    # each side's own code ran, and only it: SB3 is not in the loop's count, nor the loop's
+    # collector in SB3's (both step the same TorchRL env, so torchrl is in both)
+    assert loop["tensordict"] > 0 and "stable_baselines3" not in loop
+    assert sb3["stable_baselines3"] > 0 and sb3["gymnasium"] > 0
+    assert abs(row["dqnloop_total"] - sum(loop.values())) < 1.0  # rounded per package
+    assert row["ratio_dqnloop_over_sb3"] > 0
+    # every labelled phase ran, on the side that has it
+    assert {"env", "acting", "update", "store", "step_mdp", "postproc"} <= set(
+        row["dqnloop_by_phase"])
+    assert {"env", "acting", "update", "gym_wrapper"} <= set(row["sb3_by_phase"])
+    assert "step_mdp" not in row["sb3_by_phase"] and "gym_wrapper" not in row["dqnloop_by_phase"]
+    assert abs(sum(row["sb3_by_phase"].values()) - row["sb3_total"]) < 1.0
+    for name, ours, theirs in row["dqnloop_more_than_sb3"]:
+        assert ours > theirs, name
+    with pytest.raises(SystemExit):
+        _bench().main(["--calls", "-5"])
