@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data import Categorical, OneHot
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import EGreedyModule, QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate
+from torchrl.objectives import DQNLoss
 
 from torchrl_causal.causal.tables import RewardTables
 from torchrl_causal.modules import CBNGate, ThesisQNet

@@ -49,7 +49,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, MultiCategorical, Unbounded
 from torchrl.envs.transforms import Transform
 
-from torchrl_causal.schema import DEFAULT_CLIP, DEFAULT_SCHEMA, VariableSchema, thesis_schema
+from torchrl_causal.schema import DEFAULT_CLIP, VariableSchema, thesis_schema
 
 __all__ = ["Thresholds", "Discretize"]
 
