@@ -8,6 +8,7 @@
     python benchmarks/sim_to_real.py --detector-weights W.pt  # candidate weights, same flights
     python benchmarks/sim_to_real.py --policies generalist --map exact  # EgoMap's depth model
     python benchmarks/sim_to_real.py --policies generalist --goal-size 1.0 0.8  # printed board
+    python benchmarks/sim_to_real.py --from-flights flights/*/summary.json  # pool flown seeds
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
@@ -38,6 +39,16 @@ fly_tello's: the depth model of the generalist's
 policy without one). ``--goal-size W H`` gives the generalist's random layouts
 every board that size; at 1.0 0.8, the field guide's printed board, fly_tello's
 ``--arrival-head auto`` flies the shipped random-rooms head.
+
+``--from-flights SUMMARY [SUMMARY ...]`` flies nothing: it pools ``fly_tello.py``
+runs already flown (their ``summary.json``, or the folders holding one), one object
+per run and one pooled object, with the same targets and, beside them, whether each
+rate's 95 % interval lies on the target's side (``*_shown``). The runs must be
+flights of one setting: any difference in what they flew (policy, layout, board,
+perception, arrival rule, map, noise, episodes per seed) is named and refused; a seed
+given twice is refused too. Without ``--compare-sim`` in the flights the
+``DroneNavEnv`` fields are null. The figures of docs/tello.rst's "Twelve more fresh
+seeds" come from ``--from-flights docs/_static/results/tello/mirror_defaults_s*_summary.json``.
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
 """
@@ -101,6 +112,7 @@ def fly(policy: str, seed: int, episodes: int, out: Path, weights: dict | None =
 
 def seed_figure(policy: str, seed: int, s: dict) -> dict:
     n = s["success_sim"]["n"]
+    dn = s.get("dronenav") or {}
     return {"figure": "sim_to_real", "policy": policy, "seed": seed, "episodes": n,
             "layout": s.get("layout"), "goal_size": s.get("goal_size"),
             "arrival_head": s.get("arrival_head"),
@@ -108,10 +120,12 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "success_sim": s["success_sim"]["rate"], "success_sim_ci95": s["success_sim"]["ci95"],
             "agreement": s["agreement"], "false_reached": s["false_reached"],
             "missed_reach": s["missed_reach"], "crashes": s["crashes"],
-            "dronenav": s["dronenav"]["rate"], "dronenav_ci95": s["dronenav"]["ci95"],
+            "crash_sim": s.get("crash_sim"),
+            # None: flown without --compare-sim (a --from-flights run)
+            "dronenav": dn.get("rate"), "dronenav_ci95": dn.get("ci95"),
             # DroneNavEnv flies the emulator's own layouts and noise draws: per-episode pairs
-            "dronenav_paired": s["dronenav"].get("paired"),
-            "dronenav_perception": s["dronenav"].get("perception", "sim"),
+            "dronenav_paired": dn.get("paired"),
+            "dronenav_perception": dn.get("perception", "sim") if dn else None,
             "detector_weights": s.get("detector_weights", "shipped"),
             "depth_weights": s.get("depth_weights", "shipped"),
             "map": s.get("map"), "fresh_hits": bool(s.get("fresh_hits", False)),
@@ -120,28 +134,82 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
 
 
 def pooled_figure(policy: str, figures: list[dict]) -> dict:
+    """All seeds of a policy together, with the issue's targets (``*_shown``: the rate's
+    95 % Wilson interval lies wholly on the target's side)."""
     n = sum(f["episodes"] for f in figures)
     k = round(sum(f["success_sim"] * f["episodes"] for f in figures))
     agree = round(sum(f["agreement"] * f["episodes"] for f in figures))
-    kd = round(sum(f["dronenav"] * f["episodes"] for f in figures))
     false = sum(f["false_reached"] for f in figures)
     lo, hi = wilson(k, n)
-    dlo, dhi = wilson(kd, n)
     alo, ahi = wilson(agree, n)
+    flo, fhi = wilson(false, n)
+    crash_sim = {}
+    for f in figures:
+        for kind, count in (f.get("crash_sim") or {}).items():
+            crash_sim[kind] = crash_sim.get(kind, 0) + count
+    with_dn = all(f["dronenav"] is not None for f in figures)
     out = {"figure": "sim_to_real_pooled", "policy": policy,
            "seeds": [f["seed"] for f in figures], "episodes": n,
            "success_sim": round(k / n, 4), "success_sim_ci95": [round(lo, 4), round(hi, 4)],
            "agreement": round(agree / n, 4), "agreement_ci95": [round(alo, 4), round(ahi, 4)],
-           "false_reached": false, "missed_reach": sum(f["missed_reach"] for f in figures),
-           "crashes": sum(f["crashes"] for f in figures),
-           "dronenav": round(kd / n, 4), "dronenav_ci95": [round(dlo, 4), round(dhi, 4)]}
+           "agreed": agree, "false_reached": false,
+           "false_reached_rate": round(false / n, 4),
+           "false_reached_ci95": [round(flo, 4), round(fhi, 4)],
+           "missed_reach": sum(f["missed_reach"] for f in figures),
+           "crashes": sum(f["crashes"] for f in figures), "crash_sim": crash_sim,
+           "dronenav": None, "dronenav_ci95": None}
+    if with_dn:
+        kd = round(sum(f["dronenav"] * f["episodes"] for f in figures))
+        dlo, dhi = wilson(kd, n)
+        out.update(dronenav=round(kd / n, 4), dronenav_ci95=[round(dlo, 4), round(dhi, 4)])
     target = TARGETS["success_min"].get(policy)
     out["targets"] = {
-        "inside_dronenav_ci": bool(dlo <= k / n <= dhi),
+        "inside_dronenav_ci": bool(dlo <= k / n <= dhi) if with_dn else None,
         "agreement": bool(agree / n >= TARGETS["agreement_min"]),
+        "agreement_shown": bool(alo >= TARGETS["agreement_min"]),
         "false_reached": bool(false / n < TARGETS["false_reached_max"]),
+        "false_reached_shown": bool(fhi < TARGETS["false_reached_max"]),
         **({"success": bool(k / n >= target)} if target is not None else {})}
     return out
+
+
+#: What a flight's summary.json records about its outcome, not its setting.
+_OUTCOME_KEYS = {"seed", "wall_s", "success_sim", "success", "agreement", "false_reached",
+                 "missed_reach", "closest_sim_m_median", "crash_sim", "crashes", "mean_length",
+                 "dronenav"}
+
+
+def _load_flights(paths: list[Path]) -> list[dict]:
+    """``fly_tello.py`` summaries, checked to be flights of one setting. Raises ValueError
+    naming a missing file, a summary of another kind, a seed given twice, or the keys whose
+    values differ between runs."""
+    runs = []
+    for path in paths:
+        f = path / "summary.json" if path.is_dir() else path
+        if not f.is_file():
+            raise ValueError(f"--from-flights: {str(path)!r} is neither a summary.json nor a "
+                             "folder holding one")
+        s = json.loads(f.read_text())
+        if "agreement" not in s or "success_sim" not in s or "seed" not in s:
+            raise ValueError(f"--from-flights: {str(f)!r} is not a fly_tello.py emulator "
+                             "summary (no agreement / success_sim / seed)")
+        # the run folder's path may be written absolute: compare the policy by its name
+        s["run"] = Path(str(s.get("run", ""))).name
+        if s.get("arrival_head"):
+            s["arrival_head"] = Path(str(s["arrival_head"])).name
+        runs.append((f, s))
+    seeds = [s["seed"] for _, s in runs]
+    twice = sorted({x for x in seeds if seeds.count(x) > 1})
+    if twice:
+        raise ValueError(f"--from-flights: seed(s) {twice} given more than once")
+    setting = {k: v for k, v in runs[0][1].items() if k not in _OUTCOME_KEYS}
+    for f, s in runs[1:]:
+        other = {k: v for k, v in s.items() if k not in _OUTCOME_KEYS}
+        diff = sorted(k for k in set(setting) | set(other) if setting.get(k) != other.get(k))
+        if diff:
+            raise ValueError(f"--from-flights: {str(f)!r} flew another setting than "
+                             f"{str(runs[0][0])!r}: {', '.join(diff)} differ")
+    return [s for _, s in runs]
 
 
 def main(argv=None) -> list[dict]:
@@ -175,7 +243,22 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--mirror-check", type=float, default=None, metavar="M",
                    help="fly_tello.py --mirror-check for the generalist's flights: the head read "
                         "on each frame and its mirror image (default: fly_tello's auto)")
+    p.add_argument("--from-flights", nargs="+", type=Path, default=None, metavar="SUMMARY",
+                   help="fly nothing: pool these fly_tello.py runs (summary.json files or their "
+                        "folders), flights of one setting")
     a = p.parse_args(argv)
+    if a.from_flights is not None:
+        try:
+            runs = _load_flights(a.from_flights)
+        except ValueError as e:
+            p.error(str(e))
+        name = runs[0]["run"] or "policy"
+        figures = [seed_figure(name, s["seed"], s) for s in sorted(runs, key=lambda r: r["seed"])]
+        for f in figures:
+            print(json.dumps(f), flush=True)
+        figures.append(pooled_figure(name, figures))
+        print(json.dumps(figures[-1]), flush=True)
+        return figures
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.fresh_hits == "on" and a.map == "exact":

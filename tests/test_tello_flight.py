@@ -439,8 +439,8 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     assert one["episodes"] == pooled["episodes"] == 2 and one["layout"] == "thesis"
     assert one["arrival_head"].endswith("arrival.pt")  # the default rule on the thesis board
     assert 0.0 <= pooled["success_sim"] <= 1.0 and pooled["seeds"] == [3]
-    assert set(pooled["targets"]) == {"inside_dronenav_ci", "agreement", "false_reached",
-                                      "success"}
+    assert set(pooled["targets"]) == {"inside_dronenav_ci", "agreement", "agreement_shown",
+                                      "false_reached", "false_reached_shown", "success"}
     assert (tmp_path / "thesis_seed3" / "episodes.csv").is_file()
     assert one["detector_weights"] == str(DEFAULT_WEIGHTS) and one["depth_weights"] == "shipped"
     assert one["map"] is None  # the thesis policy reads no EgoMap
@@ -455,6 +455,54 @@ def test_sim_to_real_benchmark_prints_its_figures_as_json(tmp_path, capsys):
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert "--depth-weights" in err and "nope.pt" in err
+
+
+def test_sim_to_real_pools_flights_already_flown(tmp_path, capsys):
+    """--from-flights: the twenty fresh seeds docs/tello.rst reports, pooled from their
+    committed summaries; runs of another setting, a seed given twice, a file that is not
+    a summary and a missing path are named and refused."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    data = sorted((ROOT / "docs" / "_static" / "results" / "tello").glob(
+        "mirror_defaults_s*_summary.json"))
+    assert len(data) == 20
+    figs = sim_to_real.main(["--from-flights", *map(str, data)])
+    *seeds, pooled = figs
+    assert [f["figure"] for f in seeds] == ["sim_to_real"] * 20
+    assert [f["seed"] for f in seeds] == sorted(f["seed"] for f in seeds)
+    assert pooled["figure"] == "sim_to_real_pooled" and pooled["policy"] == "generalist"
+    # the pooled counts are the seeds' counts summed, and what the docs print
+    assert pooled["agreed"] == sum(round(f["agreement"] * f["episodes"]) for f in seeds) == 949
+    assert pooled["episodes"] == 1000 and pooled["false_reached"] == 29
+    assert pooled["crash_sim"] == {"board": 125, "obstacle": 228}
+    lo, hi = pooled["agreement_ci95"]
+    assert lo < 0.95 < hi and pooled["false_reached_ci95"][1] < 0.05
+    assert pooled["targets"]["agreement"] is False and pooled["targets"]["agreement_shown"] is False
+    assert pooled["targets"]["false_reached_shown"] is True
+    # two of them flew DroneNavEnv beside the emulator, the rest did not: no pooled reference
+    assert pooled["dronenav"] is None and pooled["targets"]["inside_dronenav_ci"] is None
+    assert sum(f["dronenav"] is not None for f in seeds) == 2
+    # a run folder holding a summary.json is taken as the file
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text(data[0].read_text())
+    one = sim_to_real.main(["--from-flights", str(run)])
+    assert one[0]["seed"] == json.loads(data[0].read_text())["seed"]
+    capsys.readouterr()
+    other = json.loads(data[1].read_text())
+    other.update(seed=9999, mirror_check=0.1, episodes=20)
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    (tmp_path / "not_a_summary.json").write_text(json.dumps({"frames": 3}))
+    for argv, message in (
+            ([data[0], tmp_path / "other.json"], "episodes, mirror_check differ"),
+            ([data[0], data[0]], "given more than once"),
+            ([tmp_path / "not_a_summary.json"], "is not a fly_tello.py emulator summary"),
+            ([tmp_path / "nope"], "is neither a summary.json nor a folder holding one")):
+        with pytest.raises(SystemExit) as exit_:
+            sim_to_real.main(["--from-flights", *map(str, argv)])
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv, expected, fresh", [([], "estimated", True),
