@@ -427,8 +427,12 @@ def call_counts(cfg, frames: int, top: int = 12) -> dict:
     private keys) and ``store`` (``_ingest``: buffer write and episode rows); SB3's
     ``gym_wrapper`` (``DroneNavGymEnv`` around the env); and ``rest`` (the collector's or
     SB3's own bookkeeping between them: the loop's stacking of each batch, SB3's buffer
-    write)."""
+    write). ``sys.setprofile`` sees the calling thread only: the loop must run serially
+    (``collector.overlap=false``, the recipe's default)."""
     from unittest import mock
+
+    if cfg.collector.get("overlap", False):
+        raise ValueError("calls per frame count one thread: run with collector.overlap=false")
 
     import train as train_recipe
     from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
