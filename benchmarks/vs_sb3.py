@@ -370,27 +370,31 @@ def _package(path: str) -> str:
 
 class _CallCounter:
     """Counts every Python-level function call (``sys.setprofile``'s ``call`` and
-    ``c_call`` events) by the phase it runs under, by package and by function. A phase is
-    the innermost method :meth:`label` wrapped that is running (``rest`` outside them)."""
+    ``c_call`` events) by the phase it runs under and the function (with its package). A
+    phase is the innermost method :meth:`label` wrapped that is running (``rest`` outside
+    them). The counts by phase and by package are sums of ``calls``."""
 
     def __init__(self):
         self.stack = ["rest"]
-        self.phases, self.packages = collections.Counter(), collections.Counter()
-        self.functions = collections.Counter()  # (phase, function)
+        self.calls = collections.Counter()  # (phase, package, function)
 
     def _event(self, frame, event, arg):
         if event == "call":
             code = frame.f_code
             package = _package(code.co_filename)
-            function = f"{package}:{Path(code.co_filename).name}:{code.co_name}"
+            self.calls[self.stack[-1], package,
+                       f"{package}:{Path(code.co_filename).name}:{code.co_name}"] += 1
         elif event == "c_call":
-            package = "builtins (C)"
-            function = f"C:{getattr(arg, '__qualname__', repr(arg))}"
-        else:
-            return
-        self.phases[self.stack[-1]] += 1
-        self.packages[package] += 1
-        self.functions[self.stack[-1], function] += 1
+            self.calls[self.stack[-1], "builtins (C)",
+                       f"C:{getattr(arg, '__qualname__', repr(arg))}"] += 1
+
+    def by(self, field: int, phase: str | None = None) -> collections.Counter:
+        """The counts summed by phase (0), package (1) or function (2), of one phase or all."""
+        out = collections.Counter()
+        for key, n in self.calls.items():
+            if phase is None or key[0] == phase:
+                out[key[field]] += n
+        return out
 
     def label(self, owner, name: str, phase: str):
         """``mock.patch`` of ``owner.name`` that runs it under ``phase``."""
@@ -482,29 +486,21 @@ def call_counts(cfg, frames: int, top: int = 12) -> dict:
     def per(counter):
         return {k: round(v / frames, 1) for k, v in counter.most_common() if v / frames >= 0.05}
 
-    def total(counter):
-        out = collections.Counter()
-        for (_, function), n in counter.items():
-            out[function] += n
-        return out
-
     def phase_top(counter, phase):
-        calls = collections.Counter({f: n for (p, f), n in counter.items() if p == phase})
-        return [[f, round(n / frames, 1)] for f, n in calls.most_common(top)]
+        return [[f, round(n / frames, 1)] for f, n in counter.by(2, phase).most_common(top)]
 
-    lf, sf = total(loop.functions), total(sb3.functions)
-    extra = sorted(set(lf) | set(sf), key=lambda k: sf[k] - lf[k])[:top]
-    return {"dqnloop_total": round(sum(loop.phases.values()) / frames, 1),
-            "sb3_total": round(sum(sb3.phases.values()) / frames, 1),
-            "ratio_dqnloop_over_sb3": round(sum(loop.phases.values())
-                                            / max(1, sum(sb3.phases.values())), 3),
-            "dqnloop_by_phase": per(loop.phases), "sb3_by_phase": per(sb3.phases),
-            "dqnloop_by_package": per(loop.packages), "sb3_by_package": per(sb3.packages),
+    lt, st = sum(loop.calls.values()), sum(sb3.calls.values())
+    lf, sf = loop.by(2), sb3.by(2)
+    extra = sorted(set(lf) | set(sf), key=lambda k: (sf[k] - lf[k], k))[:top]  # ties by name
+    return {"dqnloop_total": round(lt / frames, 1), "sb3_total": round(st / frames, 1),
+            "ratio_dqnloop_over_sb3": round(lt / max(1, st), 3),
+            "dqnloop_by_phase": per(loop.by(0)), "sb3_by_phase": per(sb3.by(0)),
+            "dqnloop_by_package": per(loop.by(1)), "sb3_by_package": per(sb3.by(1)),
             "dqnloop_more_than_sb3": [[k, round(lf[k] / frames, 1), round(sf[k] / frames, 1)]
                                       for k in extra if lf[k] > sf[k]],
-            "dqnloop_top_in_rest": phase_top(loop.functions, "rest"),
-            "dqnloop_top_in_store": phase_top(loop.functions, "store"),
-            "sb3_top_in_rest": phase_top(sb3.functions, "rest")}
+            "dqnloop_top_in_rest": phase_top(loop, "rest"),
+            "dqnloop_top_in_store": phase_top(loop, "store"),
+            "sb3_top_in_rest": phase_top(sb3, "rest")}
 
 
 def paired_ratio(ours, theirs) -> dict:
