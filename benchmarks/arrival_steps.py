@@ -6,6 +6,7 @@
         --layout heldout --episodes 50 --noise --goal-size 1.0 0.8 --seed 23 \\
         --log-steps --no-video --out flights/s23
     python benchmarks/arrival_steps.py flights/s23/steps.jsonl [more steps.jsonl ...]
+    python benchmarks/arrival_steps.py    # the kept logs: docs/_static/results/tello/steps/
 
 Reads the per-step records of emulated flights (``fly_tello.py --log-steps``: the
 action, whether the detector saw the board, the arrival head's estimate, the verdicts,
@@ -23,31 +24,50 @@ and the drone's true offset from the goal point in the board's frame) and prints
 * ``head_error``: the head's error (m) against the true ``(ahead, lateral)``, by the
   true sideways offset (inside and beyond the 0.6 m the shipped random-rooms head
   was trained on) and by whether the board was in sight (a held board: not).
+* ``threshold_counterfactual``: the verdicts of the same flights had ``TelloEnv``
+  also fired wherever the head's 3-D estimate lay within ``t`` of the goal point
+  (``--thresholds``). Such a rule changes nothing before its first extra firing, so
+  its verdicts read off the logs exactly: the episode ends at that step, and the
+  simulator's verdict is whether the drone had entered the sphere by then. Per ``t``:
+  the episodes that agree, the flights it lands early (a success before, now outside
+  the sphere) and the missed arrivals it catches.
+
+Inputs: ``steps.jsonl`` files, gzipped ones (``.jsonl.gz``) or flight folders holding
+a ``steps.jsonl``.
 
 Results: docs/tello.rst, "Step by step at the goal".
 """
 
 from __future__ import annotations
 
+import argparse
+import gzip
 import json
 import math
 import os
-import sys
+from pathlib import Path
 
 os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")  # stdout carries the JSON only
 
 import numpy as np  # noqa: E402
 
 SPHERE = 0.2  # the simulator's reach radius (m)
+#: the step logs kept of the generalist's fresh-seed flights (docs/tello.rst)
+KEPT_LOGS = Path(__file__).resolve().parents[1] / "docs" / "_static" / "results" / "tello" / "steps"
 LATERAL_BINS = ((0.0, 0.3), (0.3, 0.6), (0.6, math.inf))
 
 
 def load_episodes(paths) -> list[list[dict]]:
     """The records of ``steps.jsonl`` files, one list of steps per episode, in order."""
     episodes = []
-    for path in paths:
+    for path in map(Path, paths):
+        if path.is_dir():
+            path = path / "steps.jsonl"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such steps.jsonl (fly_tello.py --log-steps "
+                                    "writes one into each flight folder)")
         current, last_ep = None, None
-        with open(path) as f:
+        with (gzip.open(path, "rt") if path.suffix == ".gz" else open(path)) as f:
             for line in f:
                 if not line.strip():
                     continue
@@ -102,6 +122,11 @@ def figures(episodes: list[list[dict]]) -> list[dict]:
                            "true_m": round(_norm(s["true_offset"]), 3), "action": s["action"],
                            "yaw_off_deg": s.get("true_yaw_off_deg"),
                            "steps_after": len(ep) - 1 - k,
+                           "steps_inside": sum(_norm(x["true_offset"]) <= SPHERE for x in ep[k:]),
+                           "head_asked_near": any(x["arrival_estimate"] is not None
+                                                  for x in ep[max(0, k - 4):k + 5]),
+                           "head_never_asked": all(x["arrival_estimate"] is None
+                                                   for x in ep[:k + 1]),
                            "ended": "crash" if last["crashed"] else (
                                "out_of_bounds" if last.get("out_of_bounds") else "step_limit")})
         if last["reached"] and not last["sim_reached"]:
@@ -110,6 +135,12 @@ def figures(episodes: list[list[dict]]) -> list[dict]:
                           "action": last["action"]})
     out.append({"figure": "missed", "episodes": len(missed), "pass_step": missed,
                 "board_unseen_at_pass": sum(not m["in_sight"] for m in missed),
+                "turned_over_45_deg_at_pass": sum(abs(m["yaw_off_deg"] or 0.0) > 45
+                                                  for m in missed),
+                "head_asked_within_4_steps": sum(m["head_asked_near"] for m in missed),
+                "head_never_asked_before_pass": sum(m["head_never_asked"] for m in missed),
+                "entered_at_0_15_m_or_more": sum(m["true_m"] >= 0.15 for m in missed),
+                "inside_for_2_steps_or_fewer": sum(m["steps_inside"] <= 2 for m in missed),
                 "ended_in_crash": sum(m["ended"] == "crash" for m in missed)})
     out.append({"figure": "false_reached", "episodes": len(false), "last_step": false,
                 "beyond_0_6_m_sideways": sum(abs(f["true_ahead_lateral"][1]) > 0.6
@@ -137,12 +168,55 @@ def figures(episodes: list[list[dict]]) -> list[dict]:
     return out
 
 
+def threshold_counterfactual(episodes: list[list[dict]], thresholds) -> dict:
+    """The ``threshold_counterfactual`` figure (see the module docstring).
+
+    Example:
+        >>> step = lambda d, sim, est=None, reached=False: {
+        ...     "true_offset": [d, 0.0, 0.0], "sim_reached": sim, "reached": reached,
+        ...     "arrival_estimate": est}
+        >>> early = [step(0.3, False, [0.15, 0, 0]), step(0.1, True, [0.1, 0, 0], True)]
+        >>> missed = [step(0.1, True, [0.15, 0, 0]), step(0.5, True)]
+        >>> fig = threshold_counterfactual([early, missed], [0.13, 0.16])
+        >>> [(r["threshold_m"], r["agree"], r["lands_early"], r["catches"]) for r in fig["rows"]]
+        [(0.13, 1, 0, 0), (0.16, 1, 1, 1)]
+    """
+    rows = []
+    for t in thresholds:
+        agree = early = caught = 0
+        for ep in episodes:
+            last = len(ep) - 1
+            fire = next((i for i, s in enumerate(ep) if s["arrival_estimate"] is not None
+                         and _norm(s["arrival_estimate"]) <= t), None)
+            reached, sim = bool(ep[-1]["reached"]), bool(ep[-1]["sim_reached"])
+            if fire is None or (reached and fire >= last):  # as flown
+                agree += reached == sim
+                continue
+            now = bool(ep[fire]["sim_reached"])  # "reached" at that step
+            agree += now
+            early += reached and sim and not now
+            caught += sim and not reached and now
+        rows.append({"threshold_m": t, "agree": agree, "lands_early": early, "catches": caught})
+    flown = sum(bool(ep[-1]["reached"]) == bool(ep[-1]["sim_reached"]) for ep in episodes)
+    return {"figure": "threshold_counterfactual", "episodes": len(episodes),
+            "agree_as_flown": flown, "rows": rows}
+
+
 def main(argv=None) -> list[dict]:
-    paths = list(sys.argv[1:] if argv is None else argv)
-    if not paths:
-        raise SystemExit("usage: arrival_steps.py STEPS.jsonl [STEPS.jsonl ...] "
-                         "(fly_tello.py --log-steps writes them)")
-    figs = figures(load_episodes(paths))
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("steps", nargs="*", metavar="STEPS",
+                   help="steps.jsonl (or .jsonl.gz) files or flight folders "
+                        "(fly_tello.py --log-steps writes them; default: the kept logs of "
+                        "the generalist's fresh seeds, docs/_static/results/tello/steps/)")
+    p.add_argument("--thresholds", type=float, nargs="+",
+                   default=[0.13, 0.14, 0.15, 0.16, 0.18, 0.2], metavar="T",
+                   help="the threshold_counterfactual figure's thresholds (m, in (0, 1])")
+    a = p.parse_args(argv)
+    bad = [t for t in a.thresholds if not (math.isfinite(t) and 0.0 < t <= 1.0)]
+    if bad:
+        p.error(f"--thresholds must be in (0, 1] m, got {bad}")
+    episodes = load_episodes(a.steps or sorted(KEPT_LOGS.glob("*_steps.jsonl.gz")))
+    figs = figures(episodes) + [threshold_counterfactual(episodes, a.thresholds)]
     for fig in figs:
         print(json.dumps(fig), flush=True)
     return figs

@@ -101,6 +101,45 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert figs["near_goal"]["episodes"] == 1
     assert figs["missed"]["episodes"] == int(row["success_sim"] and not row["success"])
     assert figs["false_reached"]["episodes"] == int(row["success"] and not row["success_sim"])
+    # the flight folder itself is read too, and the counterfactual at a threshold no
+    # estimate reaches leaves every verdict as flown
+    cf = arrival_steps.main([str(out), "--thresholds", "0.001"])[-1]
+    assert cf["figure"] == "threshold_counterfactual" and cf["episodes"] == 1
+    assert cf["rows"][0]["agree"] == cf["agree_as_flown"] == int(row["success"] == row["success_sim"])
+
+
+def test_arrival_steps_on_the_kept_step_logs(tmp_path, capsys):
+    """benchmarks/arrival_steps.py on the eighteen fresh seeds' gzipped step logs: the
+    figures docs/tello.rst ("Where the last disagreements are") prints, and bad input
+    named."""
+    from tests._scripts import load_script
+
+    arrival_steps = load_script("benchmarks/arrival_steps.py")
+    logs = sorted((ROOT / "docs" / "_static" / "results" / "tello" / "steps").glob(
+        "mirror_defaults_s*_steps.jsonl.gz"))
+    assert len(logs) == 18
+    figs = {f["figure"]: f for f in arrival_steps.main([])}  # the kept logs by default
+    cf = figs["threshold_counterfactual"]
+    assert cf["episodes"] == 900 and cf["agree_as_flown"] == 853
+    # the verdicts as flown agree with the committed episode tables
+    summaries = [json.loads(Path(str(f).replace("steps/", "").replace(
+        "_steps.jsonl.gz", "_summary.json")).read_text()) for f in logs]
+    assert sum(s["missed_reach"] for s in summaries) == figs["missed"]["episodes"] == 20
+    assert sum(s["false_reached"] for s in summaries) == figs["false_reached"]["episodes"] == 27
+    agree = {r["threshold_m"]: r["agree"] for r in cf["rows"]}
+    assert agree == {0.13: 853, 0.14: 851, 0.15: 850, 0.16: 842, 0.18: 831, 0.2: 804}
+    assert max(agree.values()) == agree[0.13]  # every looser threshold loses
+    m = figs["missed"]
+    assert (m["turned_over_45_deg_at_pass"], m["board_unseen_at_pass"],
+            m["head_asked_within_4_steps"], m["head_never_asked_before_pass"],
+            m["entered_at_0_15_m_or_more"], m["inside_for_2_steps_or_fewer"]) == (
+        16, 10, 7, 13, 12, 15)
+    capsys.readouterr()
+    for argv, msg in (([str(logs[0]), "--thresholds", "0"], "--thresholds must be in (0, 1]"),
+                      ([str(tmp_path)], "no such steps.jsonl")):
+        with pytest.raises((SystemExit, FileNotFoundError)) as e:
+            arrival_steps.main(argv)
+        assert msg in (capsys.readouterr().err + str(e.value))
 
 
 def test_bad_options_are_named_before_any_flight(capsys):
