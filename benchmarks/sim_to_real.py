@@ -9,6 +9,7 @@
     python benchmarks/sim_to_real.py --policies generalist --map exact  # EgoMap's depth model
     python benchmarks/sim_to_real.py --policies generalist --goal-size 1.0 0.8  # printed board
     python benchmarks/sim_to_real.py --from-flights flights/*/summary.json  # pool flown seeds
+    python benchmarks/sim_to_real.py --from-flights flights/*/summary.json --compare-sim
 
 For each shipped policy and emulator seed it flies ``recipes/fly_tello.py``'s
 defaults -- RGB-only perception through the emulated camera path, noisy moves
@@ -47,7 +48,13 @@ rate's 95 % interval lies on the target's side (``*_shown``). The runs must be
 flights of one setting: any difference in what they flew (policy, layout, board,
 perception, arrival rule, map, noise, episodes per seed) is named and refused; a seed
 given twice is refused too. Without ``--compare-sim`` in the flights the
-``DroneNavEnv`` fields are null. The figures of docs/tello.rst's "Twelve more fresh
+``DroneNavEnv`` fields are null, unless ``--compare-sim`` is given here: it then flies
+``DroneNavEnv``'s reference for each flight that lacks one (``fly_tello.py --compare-sim``'s
+episodes on that flight's layouts and noise draws, ``--compare-perception``'s features; the
+emulator is not flown), paired episode by episode with the flight's episode table
+(``episodes.csv`` beside ``summary.json``, ``X_episodes.csv`` beside ``X_summary.json``),
+and the pooled object adds the pooled pairs and the emulator's success minus
+``DroneNavEnv``'s on the same episodes with its 95 % interval (``paired_difference``). The figures of docs/tello.rst's "Twelve more fresh
 seeds" come from ``--from-flights docs/_static/results/tello/mirror_defaults_s*_summary.json``.
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
@@ -58,6 +65,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -133,6 +141,24 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "wall_s": s.get("wall_s")}
 
 
+def paired_difference(pairs: dict) -> dict:
+    """The emulator's success minus ``DroneNavEnv``'s on the same episodes, from the paired
+    counts, with its 95 % interval (the normal approximation for paired proportions).
+
+    Example:
+        >>> out = paired_difference({"both": 60, "emulator_only": 5, "dronenav_only": 25,
+        ...                          "neither": 10})
+        >>> out["paired_difference"], out["paired_difference_ci95"]
+        (-0.2, [-0.2999, -0.1001])
+    """
+    n = sum(pairs.values())
+    b, c = pairs["emulator_only"], pairs["dronenav_only"]
+    diff = (b - c) / n
+    half = 1.96 * math.sqrt(max(b + c - (b - c) ** 2 / n, 0.0)) / n
+    return {"dronenav_paired": dict(pairs), "paired_difference": round(diff, 4),
+            "paired_difference_ci95": [round(diff - half, 4), round(diff + half, 4)]}
+
+
 def pooled_figure(policy: str, figures: list[dict]) -> dict:
     """All seeds of a policy together, with the issue's targets (``*_shown``: the rate's
     95 % Wilson interval lies wholly on the target's side)."""
@@ -162,6 +188,10 @@ def pooled_figure(policy: str, figures: list[dict]) -> dict:
         kd = round(sum(f["dronenav"] * f["episodes"] for f in figures))
         dlo, dhi = wilson(kd, n)
         out.update(dronenav=round(kd / n, 4), dronenav_ci95=[round(dlo, 4), round(dhi, 4)])
+        if all(f["dronenav_paired"] for f in figures):
+            out.update(paired_difference(
+                {k: sum(f["dronenav_paired"][k] for f in figures)
+                 for k in ("both", "emulator_only", "dronenav_only", "neither")}))
     target = TARGETS["success_min"].get(policy)
     out["targets"] = {
         "inside_dronenav_ci": bool(dlo <= k / n <= dhi) if with_dn else None,
@@ -194,22 +224,76 @@ def _load_flights(paths: list[Path]) -> list[dict]:
             raise ValueError(f"--from-flights: {str(f)!r} is not a fly_tello.py emulator "
                              "summary (no agreement / success_sim / seed)")
         # the run folder's path may be written absolute: compare the policy by its name
-        s["run"] = Path(str(s.get("run", ""))).name
+        run_path = str(s.get("run", ""))
+        s["run"] = Path(run_path).name
         if s.get("arrival_head"):
             s["arrival_head"] = Path(str(s["arrival_head"])).name
-        runs.append((f, s))
-    seeds = [s["seed"] for _, s in runs]
+        runs.append((f, s, run_path))
+    seeds = [s["seed"] for _, s, _ in runs]
     twice = sorted({x for x in seeds if seeds.count(x) > 1})
     if twice:
         raise ValueError(f"--from-flights: seed(s) {twice} given more than once")
     setting = {k: v for k, v in runs[0][1].items() if k not in _OUTCOME_KEYS}
-    for f, s in runs[1:]:
+    for f, s, _ in runs[1:]:
         other = {k: v for k, v in s.items() if k not in _OUTCOME_KEYS}
         diff = sorted(k for k in set(setting) | set(other) if setting.get(k) != other.get(k))
         if diff:
             raise ValueError(f"--from-flights: {str(f)!r} flew another setting than "
                              f"{str(runs[0][0])!r}: {', '.join(diff)} differ")
-    return [s for _, s in runs]
+    for f, s, run_path in runs:  # where each came from (not part of its setting)
+        s["_file"], s["_run_path"] = f, run_path
+    return [s for _, s, _ in runs]
+
+
+def _episodes_csv(summary_file: Path) -> Path:
+    """The episode table beside a summary: ``summary.json`` -> ``episodes.csv`` in a flight
+    folder, ``X_summary.json`` -> ``X_episodes.csv`` where flights are kept side by side."""
+    name = summary_file.name
+    return summary_file.with_name("episodes.csv" if name == "summary.json"
+                                  else name[: -len("summary.json")] + "episodes.csv")
+
+
+def dronenav_reference(s: dict, perception: str, out: Path) -> dict:
+    """``DroneNavEnv``'s reference for a flight already flown (its ``summary.json`` ``s``, as
+    :func:`_load_flights` read it): ``fly_tello.py --compare-sim``'s episodes on that flight's
+    layouts and noise draws, with ``perception``'s features, paired with the flight's own
+    simulator verdicts (its episode table) where it has one. The emulator is not flown."""
+    import csv
+
+    from omegaconf import OmegaConf
+
+    import train as train_recipe
+
+    n, seed = int(s["success_sim"]["n"]), int(s["seed"])
+    run = Path(s["_run_path"])
+    if not run.is_absolute() and not run.is_dir():
+        run = ROOT / run
+    if not (run / "config.yaml").is_file():
+        run = policy_dir(s["run"])
+    argv = ["--run", str(run), "--episodes", str(n), "--seed", str(seed), "--compare-sim",
+            str(n), "--compare-perception", perception, "--no-video", "--out", str(out),
+            "--overwrite"]
+    argv += ["--noise"] if s.get("noise") else []
+    argv += ["--layout", s["layout"]] if s.get("layout") else []
+    argv += ["--goal-size", *(str(v) for v in s["goal_size"])] if s.get("goal_size") else []
+    argv += ["--board-back", s["board_back"]] if s.get("board_back") else []
+    argv += ["--map", s["map"]] if s.get("map") else []
+    if "fresh_hits" in s:
+        argv += ["--fresh-hits", "on" if s["fresh_hits"] else "off"]
+    with contextlib.redirect_stdout(sys.stderr):
+        args = fly_tello.parse_args(argv)
+    cfg = OmegaConf.load(run / "config.yaml")
+    uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
+    table = _episodes_csv(s["_file"])
+    verdicts = None
+    if table.is_file():
+        with table.open() as fh:
+            verdicts = [int(r["success_sim"]) for r in csv.DictReader(fh)]
+        if len(verdicts) != n:
+            raise ValueError(f"--compare-sim: {str(table)!r} has {len(verdicts)} episodes, "
+                             f"its summary {n}")
+    with contextlib.redirect_stdout(sys.stderr):
+        return fly_tello.dronenav_reference(args, cfg, run, seed, uses_map, verdicts)
 
 
 def main(argv=None) -> list[dict]:
@@ -246,6 +330,11 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--from-flights", nargs="+", type=Path, default=None, metavar="SUMMARY",
                    help="fly nothing: pool these fly_tello.py runs (summary.json files or their "
                         "folders), flights of one setting")
+    p.add_argument("--compare-sim", action="store_true",
+                   help="with --from-flights: fly DroneNavEnv's reference (fly_tello.py "
+                        "--compare-sim, --compare-perception's features) for each flight that "
+                        "flew without one, on its own layouts and noise draws, paired "
+                        "episode by episode with its episode table; the emulator is not flown")
     a = p.parse_args(argv)
     if a.from_flights is not None:
         try:
@@ -253,12 +342,28 @@ def main(argv=None) -> list[dict]:
         except ValueError as e:
             p.error(str(e))
         name = runs[0]["run"] or "policy"
+        if a.compare_sim:
+            for s in runs:  # the episode tables first: a wrong one is named before any flight
+                table = _episodes_csv(s["_file"])
+                if not s.get("dronenav") and table.is_file():
+                    with table.open() as fh:
+                        rows = sum(1 for _ in fh) - 1
+                    if rows != s["success_sim"]["n"]:
+                        p.error(f"--compare-sim: {str(table)!r} has {rows} episodes, its "
+                                f"summary {s['success_sim']['n']}")
+            for s in runs:
+                if not s.get("dronenav"):
+                    s["dronenav"] = dronenav_reference(
+                        s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav")
         figures = [seed_figure(name, s["seed"], s) for s in sorted(runs, key=lambda r: r["seed"])]
         for f in figures:
             print(json.dumps(f), flush=True)
         figures.append(pooled_figure(name, figures))
         print(json.dumps(figures[-1]), flush=True)
         return figures
+    if a.compare_sim:
+        p.error("--compare-sim is for --from-flights: flights flown here fly DroneNavEnv's "
+                "reference beside them anyway")
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
     if a.fresh_hits == "on" and a.map == "exact":

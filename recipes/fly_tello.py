@@ -786,6 +786,52 @@ def ego_map_options(args) -> dict:
     return {"depth": args.map, **({"fresh_hits": True} if args.fresh_hits else {})}
 
 
+def dronenav_reference(args, cfg, run: Path, seed: int, uses_map: bool,
+                       success_sim=None) -> dict:
+    """``--compare-sim``: the same policy's greedy episodes in ``DroneNavEnv`` on the
+    emulator's own layouts and noise draws (``--seed``), with ``--compare-perception``'s
+    features; with ``success_sim`` (the flight's simulator verdicts, one per episode) also
+    the per-episode pairs. Nothing here flies the emulator, so a flight already flown gets
+    its reference afterwards (``benchmarks/sim_to_real.py --from-flights --compare-sim``)."""
+    import train as train_recipe
+
+    from torchrl_causal.training import evaluate
+
+    noise = ["env.noise=tello"] if args.noise else []
+    if args.compare_perception == "rgb":
+        noise += ["features.options.perception=rgb"] + (
+            [f"++features.ego_map.{k}={str(v).lower() if isinstance(v, bool) else v}"
+             for k, v in ego_map_options(args).items()] if uses_map else [])
+    scene = emulated_scene(args, cfg)[0]
+    if args.goal_size is not None:  # the emulator's layouts, boards and all
+        noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]
+    if getattr(args, "board_back", "heliport") != "heliport":
+        noise += [f"++env.options.board_back={args.board_back}"]
+    policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
+    # the emulator's env draws the same layouts and noise from --seed, but it resets
+    # once when it starts: DroneNavEnv's first episode is that reset's, dropped
+    res = evaluate(policy, env, args.compare_sim + 1, seed=seed, per_episode=True,
+                   max_steps=args.max_steps)
+    eps = res["episodes"][1:]
+    k = sum(bool(e["success"]) for e in eps)
+    lo, hi = wilson(k, len(eps))
+    out = {"rate": k / len(eps), "n": len(eps), "ci95": [round(lo, 4), round(hi, 4)],
+           "mean_length": float(np.mean([e["steps"] for e in eps])),
+           "layouts": "the emulator's (paired, episode by episode)",
+           "perception": args.compare_perception,
+           "success_per_episode": [int(bool(e["success"])) for e in eps]}
+    if success_sim is not None:
+        # paired: the same layout and noise draws in both, episode by episode
+        pairs = list(zip(success_sim, out["success_per_episode"]))
+        out["paired"] = {
+            "episodes": len(pairs),
+            "both": sum(1 for a, b in pairs if a and b),
+            "emulator_only": sum(1 for a, b in pairs if a and not b),
+            "dronenav_only": sum(1 for a, b in pairs if b and not a),
+            "neither": sum(1 for a, b in pairs if not a and not b)}
+    return out
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(1)
@@ -905,42 +951,9 @@ def main(argv=None) -> dict:
     summary["crashes"] = sum(r["crash"] for r in rows)
     summary["mean_length"] = float(np.mean([r["length"] for r in rows]))
     if args.compare_sim:
-        from torchrl_causal.training import evaluate
-
-        noise = ["env.noise=tello"] if args.noise else []
-        if args.compare_perception == "rgb":
-            noise += ["features.options.perception=rgb"] + (
-                [f"++features.ego_map.{k}={str(v).lower() if isinstance(v, bool) else v}"
-                 for k, v in ego_map_options(args).items()] if uses_map else [])
-        scene = emulated_scene(args, cfg)[0]
-        if args.goal_size is not None:  # the emulator's layouts, boards and all
-            noise += ["++env.options.goal_size=[{:g},{:g}]".format(*args.goal_size)]
-        if getattr(args, "board_back", "heliport") != "heliport":
-            noise += [f"++env.options.board_back={args.board_back}"]
-        policy, env, _ = train_recipe.load_policy(run, overrides=noise, scene=scene)
-        # the emulator's env draws the same layouts and noise from --seed, but it resets
-        # once when it starts: DroneNavEnv's first episode is that reset's, dropped
-        res = evaluate(policy, env, args.compare_sim + 1, seed=seed, per_episode=True,
-                       max_steps=args.max_steps)
-        eps = res["episodes"][1:]
-        k = sum(bool(e["success"]) for e in eps)
-        lo, hi = wilson(k, len(eps))
-        summary["dronenav"] = {"rate": k / len(eps), "n": len(eps),
-                               "ci95": [round(lo, 4), round(hi, 4)],
-                               "mean_length": float(np.mean([e["steps"] for e in eps])),
-                               "layouts": "the emulator's (paired, episode by episode)",
-                               "perception": args.compare_perception,
-                               "success_per_episode": [int(bool(e["success"])) for e in eps]}
-        if rows and rows[0]["success_sim"] != "":
-            # paired: the same layout and noise draws in both, episode by episode
-            pairs = list(zip([r["success_sim"] for r in rows], summary["dronenav"][
-                "success_per_episode"]))
-            summary["dronenav"]["paired"] = {
-                "episodes": len(pairs),
-                "both": sum(1 for a, b in pairs if a and b),
-                "emulator_only": sum(1 for a, b in pairs if a and not b),
-                "dronenav_only": sum(1 for a, b in pairs if b and not a),
-                "neither": sum(1 for a, b in pairs if not a and not b)}
+        summary["dronenav"] = dronenav_reference(
+            args, cfg, run, seed, uses_map,
+            [r["success_sim"] for r in rows] if rows and rows[0]["success_sim"] != "" else None)
     (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     return summary

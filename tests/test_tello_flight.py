@@ -544,6 +544,50 @@ def test_sim_to_real_pools_flights_already_flown(tmp_path, capsys):
         assert message in capsys.readouterr().err
 
 
+def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_path, capsys):
+    """--from-flights --compare-sim: DroneNavEnv's reference for a committed flight that
+    flew without one (seed 89), on its own layouts and noise draws, paired with its episode
+    table; a seed that has one keeps it; an episode table of another length and
+    --compare-sim without --from-flights are refused."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    kept = ROOT / "docs" / "_static" / "results" / "tello"
+    s89 = kept / "mirror_defaults_s89_summary.json"
+    assert "dronenav" not in json.loads(s89.read_text())
+    figs = sim_to_real.main(["--from-flights", str(s89), "--compare-sim",
+                             "--out", str(tmp_path / "out")])
+    seed, pooled = figs
+    table = pd.read_csv(kept / "mirror_defaults_s89_episodes.csv")
+    pairs = seed["dronenav_paired"]
+    assert sum(pairs[k] for k in ("both", "emulator_only", "dronenav_only", "neither")) == 50
+    assert pairs["both"] + pairs["emulator_only"] == table["success_sim"].sum()
+    assert seed["dronenav"] == (pairs["both"] + pairs["dronenav_only"]) / 50 == 0.84
+    assert seed["dronenav_perception"] == "sim"
+    assert pooled["paired_difference"] == pytest.approx(
+        (pairs["emulator_only"] - pairs["dronenav_only"]) / 50, abs=1e-4)
+    lo, hi = pooled["paired_difference_ci95"]
+    assert lo < pooled["paired_difference"] < hi < 0  # the emulator on RGB arrives less often
+    assert pooled["targets"]["inside_dronenav_ci"] is False
+    # a flight that has its reference keeps it (nothing flown): seed 79's 0.84
+    s79 = kept / "mirror_defaults_s79_summary.json"
+    kept79 = json.loads(s79.read_text())["dronenav"]
+    one = sim_to_real.main(["--from-flights", str(s79), "--compare-sim"])[0]
+    assert one["dronenav"] == kept79["rate"] and one["dronenav_paired"] == kept79["paired"]
+    capsys.readouterr()
+    (tmp_path / "f").mkdir()
+    (tmp_path / "f" / "summary.json").write_text(s89.read_text())
+    table.head(10).to_csv(tmp_path / "f" / "episodes.csv", index=False)
+    for argv, message in (
+            (["--from-flights", str(tmp_path / "f"), "--compare-sim"], "has 10 episodes, its "
+                                                                       "summary 50"),
+            (["--compare-sim"], "--compare-sim is for --from-flights")):
+        with pytest.raises(SystemExit) as exit_:
+            sim_to_real.main(argv)
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, expected, fresh", [([], "estimated", True),
                                                    (["--map", "exact"], "exact", False),
                                                    (["--fresh-hits", "off"], "estimated", False)])
