@@ -569,6 +569,20 @@ def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_pat
     lo, hi = pooled["paired_difference_ci95"]
     assert lo < pooled["paired_difference"] < hi < 0  # the emulator on RGB arrives less often
     assert pooled["targets"]["inside_dronenav_ci"] is False
+    # the kept reference of all twenty seeds (docs/tello.rst): seed 89 as flown here, and
+    # its pooled pairs are the per-episode lists against the committed episode tables
+    ref = json.loads((kept / "dronenav_reference_s79_s179.json").read_text())
+    per = ref["dronenav_success_per_episode"]
+    assert len(per) == 20 and len(per["89"]) == 50
+    both = em_only = dn_only = 0
+    for s, dn in per.items():
+        sim = pd.read_csv(kept / f"mirror_defaults_s{s}_episodes.csv")["success_sim"].tolist()
+        both += sum(a and b for a, b in zip(sim, dn))
+        em_only += sum(a and not b for a, b in zip(sim, dn))
+        dn_only += sum(b and not a for a, b in zip(sim, dn))
+    assert (both, em_only, dn_only) == (567, 63, 291)
+    assert ref["pooled"]["dronenav_paired"]["both"] == 567 and ref["pooled"]["dronenav"] == 0.858
+    assert sum(per["89"]) == pairs["both"] + pairs["dronenav_only"]
     # a flight that has its reference keeps it (nothing flown): seed 79's 0.84
     s79 = kept / "mirror_defaults_s79_summary.json"
     kept79 = json.loads(s79.read_text())["dronenav"]
