@@ -49,7 +49,8 @@ flights of one setting: any difference in what they flew (policy, layout, board,
 perception, arrival rule, map, noise, episodes per seed) is named and refused; a seed
 given twice is refused too. Without ``--compare-sim`` in the flights the
 ``DroneNavEnv`` fields are null, unless ``--compare-sim`` is given here: it then flies
-``DroneNavEnv``'s reference for each flight that lacks one (``fly_tello.py --compare-sim``'s
+``DroneNavEnv``'s reference for each flight that lacks one of ``--compare-perception``'s
+kind (``fly_tello.py --compare-sim``'s
 episodes on that flight's layouts and noise draws, ``--compare-perception``'s features; the
 emulator is not flown), paired episode by episode with the flight's episode table
 (``episodes.csv`` beside ``summary.json``, ``X_episodes.csv`` beside ``X_summary.json``),
@@ -258,8 +259,6 @@ def dronenav_reference(s: dict, perception: str, out: Path) -> dict:
     :func:`_load_flights` read it): ``fly_tello.py --compare-sim``'s episodes on that flight's
     layouts and noise draws, with ``perception``'s features, paired with the flight's own
     simulator verdicts (its episode table) where it has one. The emulator is not flown."""
-    import csv
-
     from omegaconf import OmegaConf
 
     import train as train_recipe
@@ -277,23 +276,30 @@ def dronenav_reference(s: dict, perception: str, out: Path) -> dict:
     argv += ["--layout", s["layout"]] if s.get("layout") else []
     argv += ["--goal-size", *(str(v) for v in s["goal_size"])] if s.get("goal_size") else []
     argv += ["--board-back", s["board_back"]] if s.get("board_back") else []
-    argv += ["--map", s["map"]] if s.get("map") else []
-    if "fresh_hits" in s:
-        argv += ["--fresh-hits", "on" if s["fresh_hits"] else "off"]
+    if s.get("map"):  # a policy with a map: its depth model, and fresh hits as flown
+        argv += ["--map", s["map"], "--fresh-hits", "on" if s.get("fresh_hits") else "off"]
     with contextlib.redirect_stdout(sys.stderr):
         args = fly_tello.parse_args(argv)
     cfg = OmegaConf.load(run / "config.yaml")
     uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
-    table = _episodes_csv(s["_file"])
-    verdicts = None
-    if table.is_file():
-        with table.open() as fh:
-            verdicts = [int(r["success_sim"]) for r in csv.DictReader(fh)]
-        if len(verdicts) != n:
-            raise ValueError(f"--compare-sim: {str(table)!r} has {len(verdicts)} episodes, "
-                             f"its summary {n}")
     with contextlib.redirect_stdout(sys.stderr):
-        return fly_tello.dronenav_reference(args, cfg, run, seed, uses_map, verdicts)
+        return fly_tello.dronenav_reference(args, cfg, run, seed, uses_map, _verdicts(s))
+
+
+def _verdicts(s: dict) -> list[int] | None:
+    """The simulator's verdict per episode from the episode table beside a flight's
+    summary (None without one). Raises ValueError for a table of another length."""
+    import csv
+
+    table = _episodes_csv(s["_file"])
+    if not table.is_file():
+        return None
+    with table.open() as fh:
+        verdicts = [int(r["success_sim"]) for r in csv.DictReader(fh)]
+    if len(verdicts) != s["success_sim"]["n"]:
+        raise ValueError(f"--compare-sim: {str(table)!r} has {len(verdicts)} episodes, its "
+                         f"summary {s['success_sim']['n']}")
+    return verdicts
 
 
 def main(argv=None) -> list[dict]:
@@ -333,7 +339,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--compare-sim", action="store_true",
                    help="with --from-flights: fly DroneNavEnv's reference (fly_tello.py "
                         "--compare-sim, --compare-perception's features) for each flight that "
-                        "flew without one, on its own layouts and noise draws, paired "
+                        "flew without one (or with another perception), on its own layouts "
+                        "and noise draws, paired "
                         "episode by episode with its episode table; the emulator is not flown")
     a = p.parse_args(argv)
     if a.from_flights is not None:
@@ -343,18 +350,17 @@ def main(argv=None) -> list[dict]:
             p.error(str(e))
         name = runs[0]["run"] or "policy"
         if a.compare_sim:
-            for s in runs:  # the episode tables first: a wrong one is named before any flight
-                table = _episodes_csv(s["_file"])
-                if not s.get("dronenav") and table.is_file():
-                    with table.open() as fh:
-                        rows = sum(1 for _ in fh) - 1
-                    if rows != s["success_sim"]["n"]:
-                        p.error(f"--compare-sim: {str(table)!r} has {rows} episodes, its "
-                                f"summary {s['success_sim']['n']}")
-            for s in runs:
-                if not s.get("dronenav"):
-                    s["dronenav"] = dronenav_reference(
-                        s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav")
+            # a flight keeps a reference it was flown with, of the asked-for perception
+            todo = [s for s in runs if (s.get("dronenav") or {}).get(
+                "perception", "sim" if s.get("dronenav") else None) != a.compare_perception]
+            for s in todo:  # the episode tables first: a wrong one is named before any flight
+                try:
+                    _verdicts(s)
+                except ValueError as e:
+                    p.error(str(e))
+            for s in todo:
+                s["dronenav"] = dronenav_reference(
+                    s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav")
         figures = [seed_figure(name, s["seed"], s) for s in sorted(runs, key=lambda r: r["seed"])]
         for f in figures:
             print(json.dumps(f), flush=True)
