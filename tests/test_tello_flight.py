@@ -583,6 +583,18 @@ def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_pat
     assert (both, em_only, dn_only) == (567, 63, 291)
     assert ref["pooled"]["dronenav_paired"]["both"] == 567 and ref["pooled"]["dronenav"] == 0.858
     assert sum(per["89"]) == pairs["both"] + pairs["dronenav_only"]
+    # the kept reference with the same RGB models: its pairs, recomputed, and the emulator
+    # above it (docs/tello.rst: the Tello path is not behind the simulator)
+    rgb = json.loads((kept / "dronenav_rgb_reference_s79_s179.json").read_text())
+    counts = {"both": 0, "emulator_only": 0, "dronenav_only": 0, "neither": 0}
+    for s, dn in rgb["dronenav_rgb_success_per_episode"].items():
+        sim = pd.read_csv(kept / f"mirror_defaults_s{s}_episodes.csv")["success_sim"].tolist()
+        for a_, b_ in zip(sim, dn):
+            counts[("both" if b_ else "emulator_only") if a_ else
+                   ("dronenav_only" if b_ else "neither")] += 1
+    assert counts == rgb["pooled"]["dronenav_paired"] == {
+        "both": 419, "emulator_only": 211, "dronenav_only": 114, "neither": 256}
+    assert rgb["pooled"]["paired_difference_ci95"][0] > 0
     # a flight that has its reference keeps it (nothing flown): seed 79's 0.84
     s79 = kept / "mirror_defaults_s79_summary.json"
     kept79 = json.loads(s79.read_text())["dronenav"]
