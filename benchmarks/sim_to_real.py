@@ -254,15 +254,11 @@ def _episodes_csv(summary_file: Path) -> Path:
                                   else name[: -len("summary.json")] + "episodes.csv")
 
 
-def dronenav_reference(s: dict, perception: str, out: Path) -> dict:
+def dronenav_reference(s: dict, perception: str, out: Path, verdicts=None) -> dict:
     """``DroneNavEnv``'s reference for a flight already flown (its ``summary.json`` ``s``, as
     :func:`_load_flights` read it): ``fly_tello.py --compare-sim``'s episodes on that flight's
-    layouts and noise draws, with ``perception``'s features, paired with the flight's own
-    simulator verdicts (its episode table) where it has one. The emulator is not flown."""
-    from omegaconf import OmegaConf
-
-    import train as train_recipe
-
+    layouts and noise draws, with ``perception``'s features, paired with ``verdicts`` (the
+    flight's simulator verdicts, :func:`_verdicts`) where given. The emulator is not flown."""
     n, seed = int(s["success_sim"]["n"]), int(s["seed"])
     run = Path(s["_run_path"])
     if not run.is_absolute() and not run.is_dir():
@@ -279,11 +275,7 @@ def dronenav_reference(s: dict, perception: str, out: Path) -> dict:
     if s.get("map"):  # a policy with a map: its depth model, and fresh hits as flown
         argv += ["--map", s["map"], "--fresh-hits", "on" if s.get("fresh_hits") else "off"]
     with contextlib.redirect_stdout(sys.stderr):
-        args = fly_tello.parse_args(argv)
-    cfg = OmegaConf.load(run / "config.yaml")
-    uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
-    with contextlib.redirect_stdout(sys.stderr):
-        return fly_tello.dronenav_reference(args, cfg, run, seed, uses_map, _verdicts(s))
+        return fly_tello.dronenav_reference(fly_tello.parse_args(argv), verdicts)
 
 
 def _verdicts(s: dict) -> list[int] | None:
@@ -351,16 +343,15 @@ def main(argv=None) -> list[dict]:
         name = runs[0]["run"] or "policy"
         if a.compare_sim:
             # a flight keeps a reference it was flown with, of the asked-for perception
-            todo = [s for s in runs if (s.get("dronenav") or {}).get(
-                "perception", "sim" if s.get("dronenav") else None) != a.compare_perception]
-            for s in todo:  # the episode tables first: a wrong one is named before any flight
-                try:
-                    _verdicts(s)
-                except ValueError as e:
-                    p.error(str(e))
-            for s in todo:
+            todo = [s for s in runs if s.get("dronenav") is None
+                    or s["dronenav"].get("perception", "sim") != a.compare_perception]
+            try:  # the episode tables first: a wrong one is named before any flight
+                verdicts = [_verdicts(s) for s in todo]
+            except ValueError as e:
+                p.error(str(e))
+            for s, v in zip(todo, verdicts):
                 s["dronenav"] = dronenav_reference(
-                    s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav")
+                    s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav", v)
         figures = [seed_figure(name, s["seed"], s) for s in sorted(runs, key=lambda r: r["seed"])]
         for f in figures:
             print(json.dumps(f), flush=True)

@@ -786,17 +786,23 @@ def ego_map_options(args) -> dict:
     return {"depth": args.map, **({"fresh_hits": True} if args.fresh_hits else {})}
 
 
-def dronenav_reference(args, cfg, run: Path, seed: int, uses_map: bool,
-                       success_sim=None) -> dict:
+def dronenav_reference(args, success_sim=None) -> dict:
     """``--compare-sim``: the same policy's greedy episodes in ``DroneNavEnv`` on the
-    emulator's own layouts and noise draws (``--seed``), with ``--compare-perception``'s
-    features; with ``success_sim`` (the flight's simulator verdicts, one per episode) also
-    the per-episode pairs. Nothing here flies the emulator, so a flight already flown gets
-    its reference afterwards (``benchmarks/sim_to_real.py --from-flights --compare-sim``)."""
+    emulator's own layouts and noise draws (``--seed``, else the run's), with
+    ``--compare-perception``'s features; with ``success_sim`` (the flight's simulator
+    verdicts, one per episode) also the per-episode pairs. Nothing here flies the emulator,
+    so a flight already flown gets its reference afterwards (``benchmarks/sim_to_real.py
+    --from-flights --compare-sim``)."""
+    from omegaconf import OmegaConf
+
     import train as train_recipe
 
     from torchrl_causal.training import evaluate
 
+    run = Path(args.run)
+    cfg = OmegaConf.load(run / "config.yaml")
+    seed = int(cfg.seed if args.seed is None else args.seed)
+    uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
     noise = ["env.noise=tello"] if args.noise else []
     if args.compare_perception == "rgb":
         noise += ["features.options.perception=rgb"] + (
@@ -952,8 +958,8 @@ def main(argv=None) -> dict:
     summary["mean_length"] = float(np.mean([r["length"] for r in rows]))
     if args.compare_sim:
         summary["dronenav"] = dronenav_reference(
-            args, cfg, run, seed, uses_map,
-            [r["success_sim"] for r in rows] if rows and rows[0]["success_sim"] != "" else None)
+            args, [r["success_sim"] for r in rows] if rows and rows[0]["success_sim"] != ""
+            else None)
     (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     return summary
