@@ -19,7 +19,8 @@ the same policy in :class:`~torchrl_causal.envs.DroneNavEnv` under the same
 noise model (``--compare-sim``) on the emulator's own layouts and noise draws,
 episode by episode (``dronenav_paired``: both / emulator only / DroneNavEnv only /
 neither), with the simulator's perception or, with ``--compare-perception rgb``, the
-same RGB models. The thesis policy flies the thesis scene, the
+same MonoDepth (``--depth-weights`` or the shipped one; the goal keys stay
+``DroneNavEnv``'s own measurement). The thesis policy flies the thesis scene, the
 generalist held-out random layouts. Prints one JSON object per figure:
 
 * ``{"figure": "sim_to_real", "policy", "seed", ...}`` -- one seed's flights:
@@ -274,8 +275,24 @@ def dronenav_reference(s: dict, perception: str, out: Path, verdicts=None) -> di
     argv += ["--board-back", s["board_back"]] if s.get("board_back") else []
     if s.get("map"):  # a policy with a map: its depth model, and fresh hits as flown
         argv += ["--map", s["map"], "--fresh-hits", "on" if s.get("fresh_hits") else "off"]
+    weights = _flown_depth_weights(s) if perception == "rgb" else None
+    argv += ["--depth-weights", str(weights)] if weights is not None else []
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.dronenav_reference(fly_tello.parse_args(argv), verdicts)
+
+
+def _flown_depth_weights(s: dict) -> Path | None:
+    """The MonoDepth weights a flight flew (its ``--depth-weights``; None: the shipped
+    ones). Raises ValueError naming them when they are no longer there."""
+    if not s.get("depth_weights"):
+        return None
+    weights = Path(s["depth_weights"])
+    if not weights.is_absolute() and not weights.is_file():
+        weights = ROOT / weights
+    if not weights.is_file():
+        raise ValueError(f"--compare-perception rgb: {str(s['_file'])!r} flew MonoDepth "
+                         f"weights {s['depth_weights']!r}, which are not there")
+    return weights
 
 
 def _verdicts(s: dict) -> list[int] | None:
@@ -318,7 +335,8 @@ def main(argv=None) -> list[dict]:
                         "1.0 0.8, the printed board (the thesis scene keeps its own)")
     p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
                    help="fly_tello.py --compare-perception: DroneNavEnv's reference with the "
-                        "simulator's perception (default) or the same RGB models")
+                        "simulator's perception (default) or the flights' MonoDepth (the "
+                        "goal keys stay DroneNavEnv's own)")
     p.add_argument("--height-margin", type=float, default=None, metavar="M",
                    help="fly_tello.py --height-margin for the generalist's flights (its "
                         "learned arrival head; default: off)")
@@ -347,6 +365,8 @@ def main(argv=None) -> list[dict]:
                     or s["dronenav"].get("perception", "sim") != a.compare_perception]
             try:  # the episode tables first: a wrong one is named before any flight
                 verdicts = [_verdicts(s) for s in todo]
+                if a.compare_perception == "rgb":  # and the MonoDepth each flew
+                    [_flown_depth_weights(s) for s in todo]
             except ValueError as e:
                 p.error(str(e))
             for s, v in zip(todo, verdicts):

@@ -97,9 +97,9 @@ def parse_args(argv=None):
                         "first min(N, --episodes) episodes are paired")
     p.add_argument("--compare-perception", choices=("sim", "rgb"), default="sim",
                    help="--compare-sim's perception: sim (default: the policy's own features, "
-                        "the simulator's detector and depth) or rgb (the shipped detector and "
-                        "MonoDepth on DroneNavEnv's renders, and --map's EgoMap: the same "
-                        "perception models as the flight)")
+                        "the simulator's detector and depth) or rgb (the flight's MonoDepth, "
+                        "--depth-weights or the shipped one, on DroneNavEnv's renders, and "
+                        "--map's EgoMap; the goal keys stay DroneNavEnv's own measurement)")
     p.add_argument("--video-size", default="240x320", help="emulator video HxW")
     p.add_argument("--time-scale", type=float, default=10.0, help="emulator motion speed-up")
     p.add_argument("--fov", type=float, default=None,
@@ -805,6 +805,10 @@ def dronenav_reference(args, success_sim=None) -> dict:
     uses_map = train_recipe.policy_spec(cfg, train_recipe.ru.VARIANTS[cfg.variant]).uses_ego_map
     noise = ["env.noise=tello"] if args.noise else []
     if args.compare_perception == "rgb":
+        # the flight's MonoDepth (the goal keys stay the env's own measurement, see
+        # make_causal_transforms)
+        noise += ([f"++features.options.depth_estimator={Path(args.depth_weights).resolve()}"]
+                  if args.depth_weights is not None else [])
         noise += ["features.options.perception=rgb"] + (
             [f"++features.ego_map.{k}={str(v).lower() if isinstance(v, bool) else v}"
              for k, v in ego_map_options(args).items()] if uses_map else [])

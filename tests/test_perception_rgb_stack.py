@@ -154,3 +154,28 @@ def test_bad_input(models):
     with pytest.raises(ValueError, match="needs the env's 'pixels' and 'altitude'"):
         make_causal_transforms(GymEnv("CartPole-v1"), perception="rgb", detector=det,
                                depth_estimator=depth, hfov_deg=60.0)
+
+
+def test_depth_estimator_as_weights_path(models, tmp_path):
+    """``depth_estimator`` may name MonoDepth weights (a recipe's
+    ``features.options.depth_estimator``): that file is loaded, a missing one is named."""
+    det, depth = models
+    from torchrl_causal.perception.depth import DEFAULT_WEIGHTS, FCRN
+
+    # other weights than the shipped ones: a small untrained network, saved
+    other = MonoDepth(FCRN(widths=(8, 16, 16, 32, 32), decoder=(32, 16, 16, 8)))
+    path = tmp_path / "other.pt"
+    other.save(path)
+    px = torch.randint(0, 256, (1, 84, 84, 3), dtype=torch.uint8,
+                       generator=torch.Generator().manual_seed(0))
+    for weights, ref in ((path, other), (str(DEFAULT_WEIGHTS), depth)):
+        stack = make_causal_transforms(perception="rgb", detector=det, depth_estimator=weights,
+                                       hfov_deg=60.0)
+        est = stack[0].estimator
+        assert isinstance(est, MonoDepth)
+        # the weights are stored in half precision: equal to rounding
+        assert torch.allclose(est(px), ref(px), atol=1e-2)
+    assert not torch.allclose(other(px), depth(px), atol=0.1)  # two different estimators
+    with pytest.raises(FileNotFoundError, match="nowhere.pt"):
+        make_causal_transforms(perception="rgb", detector=det, hfov_deg=60.0,
+                               depth_estimator=tmp_path / "nowhere.pt")

@@ -604,9 +604,16 @@ def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_pat
     (tmp_path / "f").mkdir()
     (tmp_path / "f" / "summary.json").write_text(s89.read_text())
     table.head(10).to_csv(tmp_path / "f" / "episodes.csv", index=False)
+    # a flight of candidate MonoDepth weights: its RGB reference flies them, so they must exist
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "summary.json").write_text(json.dumps(
+        {**json.loads(s89.read_text()), "depth_weights": str(tmp_path / "gone.pt")}))
+    table.to_csv(tmp_path / "g" / "episodes.csv", index=False)
     for argv, message in (
             (["--from-flights", str(tmp_path / "f"), "--compare-sim"], "has 10 episodes, its "
                                                                        "summary 50"),
+            (["--from-flights", str(tmp_path / "g"), "--compare-sim", "--compare-perception",
+              "rgb"], "gone.pt"),
             (["--compare-sim"], "--compare-sim is for --from-flights")):
         with pytest.raises(SystemExit) as exit_:
             sim_to_real.main(argv)
@@ -657,19 +664,23 @@ def test_map_option_builds_the_generalists_egomap(tmp_path, monkeypatch, capsys,
 
 def test_compare_sim_on_rgb_builds_the_flights_egomap(tmp_path, monkeypatch):
     """--compare-sim with --compare-perception rgb: DroneNavEnv's reference builds the same
-    EgoMap options as the flight (ego_map_options: --map, --fresh-hits)."""
+    EgoMap options as the flight (ego_map_options: --map, --fresh-hits) and reads depth
+    with the flight's MonoDepth (--depth-weights)."""
     from torchrl_causal import training
-    from torchrl_causal.transforms import EgoMap
+    from torchrl_causal.perception.depth import FCRN, MonoDepth
+    from torchrl_causal.transforms import EgoMap, EstimatedDepth
 
     args = fly_tello.parse_args(["--fresh-hits"])
     assert fly_tello.ego_map_options(args) == {"depth": "estimated", "fresh_hits": True}
     assert fly_tello.ego_map_options(fly_tello.parse_args(["--map", "exact"])) == {
         "depth": "exact"}
-    seen = []
+    seen, widths = [], []
     evaluate = training.evaluate
 
     def spy(policy, env, *a, **kw):
         seen.extend((t.depth, t.fresh_hits) for t in env.transform if isinstance(t, EgoMap))
+        widths.extend(tuple(t.estimator.net.config["widths"]) for t in env.transform
+                      if isinstance(t, EstimatedDepth))
         return evaluate(policy, env, *a, **kw)
 
     monkeypatch.setattr(training, "evaluate", spy)
@@ -677,7 +688,15 @@ def test_compare_sim_on_rgb_builds_the_flights_egomap(tmp_path, monkeypatch):
                               "--compare-sim", "1", "--compare-perception", "rgb",
                               "--out", str(tmp_path), "--no-video", "--seed", "3"])
     assert seen == [("estimated", True)]
+    assert widths == [tuple(MonoDepth.load().net.config["widths"])]  # the shipped one
     assert summary["dronenav"]["perception"] == "rgb"
+    small = tmp_path / "depth.pt"  # other weights: the reference flies them too
+    MonoDepth(FCRN(widths=(8, 8, 8, 8, 8), decoder=(8, 8, 8, 8))).save(small)
+    widths.clear()
+    fly_tello.dronenav_reference(fly_tello.parse_args(
+        ["--episodes", "1", "--max-steps", "3", "--compare-sim", "1", "--compare-perception",
+         "rgb", "--depth-weights", str(small), "--seed", "3"]))
+    assert widths == [(8, 8, 8, 8, 8)]
 
 
 def test_sim_to_real_benchmark_passes_the_map_option_to_each_flight(tmp_path, monkeypatch,

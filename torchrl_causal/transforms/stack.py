@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import torch
 from torchrl.envs.transforms import Compose
@@ -101,7 +102,9 @@ def make_causal_transforms(
             :class:`~torchrl_causal.perception.goal.GoalDetector` (default: the
             shipped YOLOv8 detector).
         depth_estimator: ``perception="rgb"``: a callable ``uint8 [B, H, W, 3]
-            -> float32 [B, H, W]`` metres (default: the shipped ``MonoDepth``).
+            -> float32 [B, H, W]`` metres, or the path of ``MonoDepth`` weights
+            (``recipes/train_depth.py``'s ``--out``; a recipe's
+            ``features.options.depth_estimator``) (default: the shipped ``MonoDepth``).
         hfov_deg: ``perception="rgb"``: the camera's horizontal field of view
             (default: the env's ``hfov_deg``).
         confidence_threshold: ``perception="rgb"``: detector score needed for
@@ -206,8 +209,12 @@ def _rgb_stack(env, *, n_points, exact, seed, thresholds, max_depth, center_frac
 
     if detector is not None and not isinstance(detector, GoalDetector):
         raise ValueError(f"detector must be a GoalDetector or None, got {detector!r}")
+    weights = depth_estimator if isinstance(depth_estimator, (str, os.PathLike)) else None
+    if weights is not None:  # a MonoDepth weights file, loaded below (missing: named there)
+        depth_estimator = None
     if depth_estimator is not None and not callable(depth_estimator):
-        raise ValueError(f"depth_estimator must be callable or None, got {depth_estimator!r}")
+        raise ValueError(f"depth_estimator must be callable, a MonoDepth weights path or None, "
+                         f"got {depth_estimator!r}")
     if goal_meter is not None and detector is not None:
         raise ValueError("give either goal_meter or detector, not both")
     env_md = None
@@ -233,7 +240,7 @@ def _rgb_stack(env, *, n_points, exact, seed, thresholds, max_depth, center_frac
     if depth_estimator is None:
         from torchrl_causal.perception.depth import MonoDepth
 
-        depth_estimator = MonoDepth.load(device=device)
+        depth_estimator = MonoDepth.load(weights, device=device)
     if max_depth is None:
         max_depth = env_md or getattr(depth_estimator, "max_depth", None) or _DEFAULT_MAX_DEPTH
     max_depth = float(max_depth)
