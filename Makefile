@@ -139,11 +139,14 @@ detector-weights: venv
 	    --warmup-epochs 0 --close-mosaic 2 --name goal_yolov8n_hn --bench-reps 2
 
 # make depth-weights: the shipped MonoDepth (7.7 M parameters, docs/perception.rst, "The shipped
-# weights"): two camera-path data sets (video frames and close-ups through the Tello's H.264 path),
-# then 100 epochs of log-BerHu training from scratch, on the GPU when there is one (about 6 minutes
-# on an H200; about 5 hours on one CPU core), and the arrival rule's range calibrated and stored with
-# the weights. DEPTH_DEVICE=cpu|cuda overrides the choice. The shipped file was trained on an H200
-# from a working-resolution cache of the same data (benchmarks/gpu_depth/; its sidecar says how).
+# weights"): three camera-path data sets (video frames, board close-ups and obstacle close-ups
+# through the Tello's H.264 path), then 100 epochs of log-BerHu training from scratch on the first
+# two, on the GPU when there is one (about 6 minutes on an H200; about 5 hours on one CPU core),
+# then a 6-epoch fine-tune on all three (about 14 minutes on two CPU cores; docs/perception.rst,
+# "Obstacle close-ups in training"), each with the arrival rule's range calibrated and stored with
+# the weights. DEPTH_DEVICE=cpu|cuda overrides the choice. The first stage of the shipped file was
+# trained on an H200 from a working-resolution cache of the same data (benchmarks/gpu_depth/; its
+# sidecar says how), the fine-tune on the CPU.
 DEPTH_DEVICE ?= $(shell $(PY) -c "import torch; print('cuda' if torch.cuda.is_available() else 'cpu')" 2>/dev/null || echo cpu)
 depth-weights: venv
 	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_vp --n-train 2000 \
@@ -151,9 +154,16 @@ depth-weights: venv
 	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_close --n-train 2000 \
 	    --n-val 200 --n-test 200 --seed 11 --goal-absent-frac 0 --start-frac 0 \
 	    --goal-distance 0.25 1.5 --video-path --no-progress
+	$(PY) -m torchrl_causal.perception.dataset --out outputs/depth_obst --n-train 2000 \
+	    --n-val 200 --n-test 200 --seed 21 --goal-absent-frac 0 --obstacle-frac 1.0 \
+	    --video-path --no-progress
 	$(PY) recipes/train_depth.py --data outputs/depth_vp outputs/depth_close --loss log-berhu \
 	    --epochs 100 --lr 3e-3 --batch-size 32 --widths 32 64 96 160 224 --decoder 160 96 64 32 \
-	    --device $(DEPTH_DEVICE) --threads 1 --run-dir outputs/depth_run --no-progress
+	    --device $(DEPTH_DEVICE) --threads 1 --run-dir outputs/depth_run \
+	    --out outputs/depth_base.pt --no-progress
+	$(PY) recipes/train_depth.py --data outputs/depth_vp outputs/depth_close outputs/depth_obst \
+	    --init outputs/depth_base.pt --loss log-berhu --epochs 6 --lr 5e-4 --batch-size 16 \
+	    --device $(DEPTH_DEVICE) --threads 2 --run-dir outputs/depth_run_obst --no-progress
 
 # make demo: watch the shipped policies fly (recipes/watch.py): flight.mp4 (onboard camera +
 # chase view), flight_maps.png and episodes.jsonl, thesis on the thesis scene and generalist

@@ -9,17 +9,24 @@ test metrics (abs rel, RMSE, delta < 1.25) as one JSON object: on the test
 split at the data set's size (240x320, the reference camera) and on held-out
 views rendered at the DQN's 84x84.
 
-The shipped weights (7.7 M parameters, log BerHu, 100 epochs from scratch on the two
-camera-path data sets) are made by ``make depth-weights``::
+The shipped weights (7.7 M parameters, log BerHu) are made by ``make depth-weights`` in
+two stages: 100 epochs from scratch on two camera-path data sets (video frames and board
+close-ups)::
 
     python recipes/train_depth.py --data outputs/depth_vp outputs/depth_close --loss log-berhu \
         --epochs 100 --lr 3e-3 --batch-size 32 --widths 32 64 96 160 224 \
-        --decoder 160 96 64 32 --device cuda
+        --decoder 160 96 64 32 --device cuda --out outputs/depth_base.pt
 
-(about 6 minutes on an H200, about 5 hours on one CPU core with ``--device cpu``). The
-file shipped was trained on an H200 from a working-resolution cache of the same data
-(``benchmarks/gpu_depth/``) and evaluated here with ``--evaluate-only``; its sidecar
-records both commands.
+(about 6 minutes on an H200, about 5 hours on one CPU core with ``--device cpu``), then a
+fine-tune that adds obstacle close-ups (``--obstacle-frac 1``)::
+
+    python recipes/train_depth.py --data outputs/depth_vp outputs/depth_close outputs/depth_obst \
+        --init outputs/depth_base.pt --loss log-berhu --epochs 6 --lr 5e-4 --batch-size 16
+
+(about 14 minutes on two CPU cores). The first stage of the file shipped was trained on an
+H200 from a working-resolution cache of the same data (``benchmarks/gpu_depth/``) and
+evaluated here with ``--evaluate-only``; its sidecar records every command, the first
+stage's under ``init_sidecar``.
 
 Checkpoints go to ``--run-dir`` after every epoch (``last.pt``); ``--resume``
 continues an interrupted run from there (same options).
