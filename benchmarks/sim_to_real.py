@@ -365,8 +365,8 @@ def main(argv=None) -> list[dict]:
                     or s["dronenav"].get("perception", "sim") != a.compare_perception]
             try:  # the episode tables first: a wrong one is named before any flight
                 verdicts = [_verdicts(s) for s in todo]
-                if a.compare_perception == "rgb":  # and the MonoDepth each flew
-                    [_flown_depth_weights(s) for s in todo]
+                for s in todo if a.compare_perception == "rgb" else ():
+                    _flown_depth_weights(s)  # and the MonoDepth each flew is still there
             except ValueError as e:
                 p.error(str(e))
             for s, v in zip(todo, verdicts):
