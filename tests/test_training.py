@@ -124,11 +124,16 @@ def test_sigkill_at_a_random_moment_then_resume_equals_an_uninterrupted_run(tmp_
     victim.send_signal(signal.SIGKILL)
     victim.wait(timeout=30)
     assert victim.returncode == -signal.SIGKILL
-    # what the kill left is a consistent checkpoint: last.pt loads and names its buffer
+    # what the kill left is a consistent checkpoint: last.pt loads and names its buffer, or,
+    # on a machine fast enough to end training within the delay, it is the final checkpoint
+    # (no buffer kept) of a run killed in its final evaluation, which resume then runs
     state = torch.load(ckpt, weights_only=False)
-    assert (ckpt.parent / state["buffer_dir"]).is_dir()
     frames_at_kill = state["loop"]["frames"]
-    assert 0 < frames_at_kill < 1200
+    if state["buffer_dir"] is None:
+        assert frames_at_kill >= 1200
+    else:
+        assert (ckpt.parent / state["buffer_dir"]).is_dir()
+        assert 0 < frames_at_kill < 1200
     _finish(_worker(killed, "--resume"))
     _finish(ref)
     for name in ("episodes.csv", "eval.csv", "relearns.csv"):
