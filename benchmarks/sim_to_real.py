@@ -255,11 +255,14 @@ def _episodes_csv(summary_file: Path) -> Path:
                                   else name[: -len("summary.json")] + "episodes.csv")
 
 
-def dronenav_reference(s: dict, perception: str, out: Path, verdicts=None) -> dict:
+def dronenav_reference(s: dict, perception: str, out: Path, verdicts=None,
+                       depth_weights: Path | None = None) -> dict:
     """``DroneNavEnv``'s reference for a flight already flown (its ``summary.json`` ``s``, as
     :func:`_load_flights` read it): ``fly_tello.py --compare-sim``'s episodes on that flight's
     layouts and noise draws, with ``perception``'s features, paired with ``verdicts`` (the
-    flight's simulator verdicts, :func:`_verdicts`) where given. The emulator is not flown."""
+    flight's simulator verdicts, :func:`_verdicts`) where given; ``depth_weights`` is the
+    MonoDepth the flight flew (:func:`_flown_depth_weights`; None: the shipped one), read with
+    ``perception="rgb"``. The emulator is not flown."""
     n, seed = int(s["success_sim"]["n"]), int(s["seed"])
     run = Path(s["_run_path"])
     if not run.is_absolute() and not run.is_dir():
@@ -275,8 +278,8 @@ def dronenav_reference(s: dict, perception: str, out: Path, verdicts=None) -> di
     argv += ["--board-back", s["board_back"]] if s.get("board_back") else []
     if s.get("map"):  # a policy with a map: its depth model, and fresh hits as flown
         argv += ["--map", s["map"], "--fresh-hits", "on" if s.get("fresh_hits") else "off"]
-    weights = _flown_depth_weights(s) if perception == "rgb" else None
-    argv += ["--depth-weights", str(weights)] if weights is not None else []
+    if perception == "rgb" and depth_weights is not None:
+        argv += ["--depth-weights", str(depth_weights)]
     with contextlib.redirect_stdout(sys.stderr):
         return fly_tello.dronenav_reference(fly_tello.parse_args(argv), verdicts)
 
@@ -365,13 +368,14 @@ def main(argv=None) -> list[dict]:
                     or s["dronenav"].get("perception", "sim") != a.compare_perception]
             try:  # the episode tables first: a wrong one is named before any flight
                 verdicts = [_verdicts(s) for s in todo]
-                for s in todo if a.compare_perception == "rgb" else ():
-                    _flown_depth_weights(s)  # and the MonoDepth each flew is still there
+                # and the MonoDepth each flew, still there
+                weights = [_flown_depth_weights(s) if a.compare_perception == "rgb" else None
+                           for s in todo]
             except ValueError as e:
                 p.error(str(e))
-            for s, v in zip(todo, verdicts):
+            for s, v, w in zip(todo, verdicts, weights):
                 s["dronenav"] = dronenav_reference(
-                    s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav", v)
+                    s, a.compare_perception, a.out / f"{name}_seed{s['seed']}_dronenav", v, w)
         figures = [seed_figure(name, s["seed"], s) for s in sorted(runs, key=lambda r: r["seed"])]
         for f in figures:
             print(json.dumps(f), flush=True)
