@@ -218,6 +218,12 @@ def parse_args(argv=None):
                         "counts when sqrt((h + M)^2 + dz^2) - M <= --reach-offset (e.g. 0.07 "
                         "with 0.13: the simulator's 0.2 m sphere in height; docs/tello.rst, 'A "
                         "head that can decline'); default none")
+    p.add_argument("--height-approach", type=float, default=None, metavar="M",
+                   help="with the arrival head and the final approach: ask the head also where "
+                        "the height sensor alone puts the drone outside --reach-offset but "
+                        "within M m of the goal point's height, so the final approach flies "
+                        "the vertical leg too (docs/tello.rst, 'The vertical leg'); default "
+                        "none")
     p.add_argument("--mirror-check", default="auto", metavar="M",
                    help="with a learned arrival head: ask it on each frame and on its mirror "
                         "image, read the mean of the two, and take nothing from a frame whose "
@@ -369,6 +375,15 @@ def parse_args(argv=None):
     if a.height_margin is not None:
         _head_distance(p, a, "--height-margin", a.height_margin,
                        "widens the learned arrival head's rule")
+    if a.height_approach is not None:
+        _head_distance(p, a, "--height-approach", a.height_approach,
+                       "flies the vertical leg to the arrival head's goal point", learned=False)
+        if a.height_approach == 0:
+            p.error("--height-approach must be a height above 0 m (leave it out for none), "
+                    "got 0")
+        if a.final_approach is None:
+            p.error(f"--height-approach {a.height_approach:g} lets the final approach fly the "
+                    "vertical leg: it needs --final-approach")
     explicit = a.mirror_check not in ("auto", "none")
     a.mirror_check = _auto_distance(p, "--mirror-check", "distance", a.mirror_check,
                                     MIRROR_CHECK if a.lost_board == "ask" else None)
@@ -487,7 +502,8 @@ def _auto_distance(p, flag: str, what: str, value: str, auto: float | None) -> f
 
 #: The largest length (m) each arrival-head option takes (``benchmarks/sim_to_real.py``
 #: checks its pass-through options against the same bounds).
-HEAD_DISTANCE_MAX = {"--segment-slack": 1.0, "--height-margin": 0.5, "--mirror-check": 1.0}
+HEAD_DISTANCE_MAX = {"--segment-slack": 1.0, "--height-margin": 0.5, "--mirror-check": 1.0,
+                     "--height-approach": 0.5}
 
 
 def head_distance_error(flag: str, value: float) -> str | None:
@@ -632,6 +648,7 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["lost_board"] = getattr(args, "lost_board", "hold")
         kw["segment_slack"] = getattr(args, "segment_slack", None)
         kw["height_margin"] = getattr(args, "height_margin", None)
+        kw["height_approach"] = getattr(args, "height_approach", None)
         kw["mirror_check"] = getattr(args, "mirror_check", None)
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
@@ -884,7 +901,7 @@ def main(argv=None) -> dict:
         summary["lost_board"] = args.lost_board
     if getattr(args, "segment_slack", None) is not None:
         summary["segment_slack"] = args.segment_slack
-    for opt in ("height_margin", "mirror_check"):
+    for opt in ("height_margin", "height_approach", "mirror_check"):
         if getattr(args, opt, None) is not None:
             summary[opt] = getattr(args, opt)
     if real:

@@ -112,6 +112,16 @@ def test_tello_env_refuses_an_approach_without_a_head():
         TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=depth,
                  verbose=False, reach_rule=ReachRule(max_goal_offset=0.15),
                  arrival_head=lambda f: torch.zeros(len(f), 2), final_approach=3.0)
+    with pytest.raises(ValueError, match="height_approach=0.3 lets the final approach fly "
+                                         "the vertical leg: it needs final_approach"):
+        TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=depth,
+                 verbose=False, reach_rule=ReachRule(max_goal_offset=0.15),
+                 arrival_head=lambda f: torch.zeros(len(f), 2), height_approach=0.3)
+    with pytest.raises(ValueError, match="height_approach must be a finite number > 0"):
+        TelloEnv(dry_run=True, detector=SimGoalDetector(), depth_estimator=depth,
+                 verbose=False, reach_rule=ReachRule(max_goal_offset=0.15),
+                 arrival_head=lambda f: torch.zeros(len(f), 2), final_approach=0.4,
+                 height_approach=-0.1)
 
 
 @pytest.fixture(scope="module")
@@ -211,3 +221,54 @@ def test_the_replay_benchmark_prints_its_figures(capsys):
                for f in figs)
     with pytest.raises(SystemExit):
         bench.main(["--logs", str(root / "README.md")])
+
+
+def test_height_approach_flies_the_vertical_leg(emu):
+    """A scripted flight that hovers 0.25 m above the goal point's height, straight in
+    front of the board: the height sensor alone puts it outside the rule, so the head is
+    not asked and the final approach never flies; with ``height_approach`` the head is
+    asked there too, and one ``go`` with its vertical part brings the drone down to the
+    goal point (the simulator agreeing)."""
+    lay = emu.env.layout
+    goal, centre = np.array(lay.goal_point()), np.array(lay.goal_center)
+    n = (goal - centre)[:2] / np.linalg.norm((goal - centre)[:2])
+    side = np.array([-n[1], n[0]])
+    asked = []
+
+    def head(frames):  # the true (ahead, lateral), as above
+        d = np.array(emu.pose()[:2]) - goal[:2]
+        asked.append(emu.pose()[2] - goal[2])
+        return torch.tensor([[float(d @ n), float(d @ side)]] * len(frames))
+
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.15, goal_height=float(goal[2]))
+    # around the pillar: 0.75 m left, 2 m forward, back 0.75 m right, up 0.25 m, forward
+    script = [2] * 3 + [0] * 8 + [3] * 3 + [4] + [0] * 2
+    env = TelloEnv(emu.client(), detector=emu.sim_detector(),
+                   depth_estimator=emu.sim_depth_estimator(), reach_rule=rule,
+                   arrival_head=head, final_approach=0.4, height_approach=0.3,
+                   command_timeout=2, before_takeoff=lambda _: emu.reset_world(),
+                   verbose=False)
+    try:
+        for height_approach in (None, 0.3):
+            asked.clear()
+            env.height_approach = height_approach
+            td = env.reset()
+            sent0 = len(env.sent)
+            for a in script:
+                td = env.step(td.set("action", torch.tensor(a)))["next"]
+                if bool(td["done"]):
+                    break
+            gt = emu.ground_truth()
+            go = [c for c in env.sent[sent0:] if c.startswith("go ")]
+            if height_approach is None:  # hovering 0.25 m above: never asked up there
+                assert not go and not bool(td["reached"]) and not gt["reached"]
+                assert 0.24 < gt["closest_goal_m"] < 0.3, gt
+                # asked up there only on the climb, whose sweep crossed the goal's height
+                assert sum(dz > 0.2 for dz in asked) == 1, asked
+                env.land()
+            else:  # asked 0.25 m up, 0.28 m short: one go, down to the goal point
+                assert sum(dz > 0.2 for dz in asked) >= 2, asked
+                assert len(go) == 1 and int(go[0].split()[3]) < -20, go
+                assert bool(td["reached"]) and gt["reached"] and gt["closest_goal_m"] < 0.05, gt
+    finally:
+        env.close()

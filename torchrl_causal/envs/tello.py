@@ -264,6 +264,14 @@ class TelloEnv(EnvBase):
             while ``|dz| <= max_goal_offset + margin``. None (default): the 3-D distance
             with ``dz`` is bounded by ``max_goal_offset`` itself (docs/tello.rst, "A head
             that can decline").
+        height_approach: with ``arrival_head`` and ``final_approach``, the head is asked
+            also where the height sensor alone puts the drone outside the rule's
+            ``max_goal_offset`` (so the rule cannot fire there) but within this height (m)
+            of the goal point, and the final approach may then fly the vertical leg too: a
+            drone hovering over (or under) the goal point is brought to its height instead
+            of being left there. None (default): the head is not asked there, and a drone
+            0.13-0.2 m above the goal point is inside the simulator's sphere but never
+            told it has arrived (docs/tello.rst, "The vertical leg").
         mirror_check: with a learned ``arrival_head`` that has ``estimate_mirrored``
             (:class:`~torchrl_causal.perception.arrival.GoalOffsetEstimator`), ask it on the
             frame and on its mirror image: the estimate is the mean of the two, and a frame
@@ -341,6 +349,7 @@ class TelloEnv(EnvBase):
         lost_board: str = "hold",
         segment_slack: float | None = None,
         height_margin: float | None = None,
+        height_approach: float | None = None,
         mirror_check: float | None = None,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
@@ -454,6 +463,13 @@ class TelloEnv(EnvBase):
                     raise ValueError(f"{name}={value!r} {does}: it needs arrival_head")
                 value = _num(name, value, 0)
             setattr(self, name, value)
+        if height_approach is not None:
+            if final_approach is None:
+                raise ValueError(f"height_approach={height_approach!r} lets the final approach "
+                                 "fly the vertical leg: it needs final_approach (and "
+                                 "arrival_head)")
+            height_approach = _num("height_approach", height_approach, 0, strict=True)
+        self.height_approach = height_approach
         if mirror_check is not None and not callable(getattr(arrival_head, "estimate_mirrored",
                                                              None)):
             raise ValueError(f"mirror_check={mirror_check!r} asks the arrival head on the frame "
@@ -835,7 +851,9 @@ class TelloEnv(EnvBase):
             if climbed:
                 nearest = 0.0 if dz_prev * dz <= 0 else min(abs(dz_prev), abs(dz))
             margin = self.height_margin or 0.0
-            if nearest > rule.max_goal_offset + margin:  # the height sensor alone: outside
+            if nearest > rule.max_goal_offset + margin and not (  # the height sensor alone:
+                    self.height_approach is not None  # outside, unless the vertical leg is
+                    and nearest <= self.height_approach):  # flown (the rule cannot fire)
                 return nearest
             if plane:
                 if look is None:
