@@ -140,6 +140,7 @@ def seed_figure(policy: str, seed: int, s: dict) -> dict:
             "depth_weights": s.get("depth_weights", "shipped"),
             "map": s.get("map"), "fresh_hits": bool(s.get("fresh_hits", False)),
             "height_margin": s.get("height_margin"), "mirror_check": s.get("mirror_check"),
+            "height_approach": s.get("height_approach"),
             "wall_s": s.get("wall_s")}
 
 

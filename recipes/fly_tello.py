@@ -218,13 +218,12 @@ def parse_args(argv=None):
                         "counts when sqrt((h + M)^2 + dz^2) - M <= --reach-offset (e.g. 0.07 "
                         "with 0.13: the simulator's 0.2 m sphere in height; docs/tello.rst, 'A "
                         "head that can decline'); default none")
-    p.add_argument("--height-approach", default="auto", metavar="M",
+    p.add_argument("--height-approach", type=float, default=None, metavar="M",
                    help="with the arrival head and the final approach: ask the head also where "
                         "the height sensor alone puts the drone outside --reach-offset but "
                         "within M m of the goal point's height, so the final approach flies "
-                        "the vertical leg too (docs/tello.rst, 'The vertical leg'). 'auto' "
-                        f"(default): {HEIGHT_APPROACH} m with --lost-board ask and the final "
-                        "approach, else none; 'none': off")
+                        "the vertical leg too (docs/tello.rst, 'The vertical leg'); default "
+                        "none")
     p.add_argument("--mirror-check", default="auto", metavar="M",
                    help="with a learned arrival head: ask it on each frame and on its mirror "
                         "image, read the mean of the two, and take nothing from a frame whose "
@@ -376,15 +375,12 @@ def parse_args(argv=None):
     if a.height_margin is not None:
         _head_distance(p, a, "--height-margin", a.height_margin,
                        "widens the learned arrival head's rule")
-    explicit = a.height_approach not in ("auto", "none")
-    a.height_approach = _auto_distance(
-        p, "--height-approach", "height", a.height_approach,
-        HEIGHT_APPROACH if a.lost_board == "ask" and a.final_approach is not None else None)
-    if explicit:
+    if a.height_approach is not None:
         _head_distance(p, a, "--height-approach", a.height_approach,
                        "flies the vertical leg to the arrival head's goal point", learned=False)
         if a.height_approach == 0:
-            p.error("--height-approach must be a height above 0 m ('none': off), got 0")
+            p.error("--height-approach must be a height above 0 m (leave it out for none), "
+                    "got 0")
         if a.final_approach is None:
             p.error(f"--height-approach {a.height_approach:g} lets the final approach fly the "
                     "vertical leg: it needs --final-approach")
@@ -427,12 +423,6 @@ FLIGHT_FILES = ("episodes.csv", "onboard.mp4", "summary.json", "steps.jsonl")
 #: ``--final-approach auto``'s radius (m), wherever the arrival head flies: chosen on the
 #: development seeds 101 and 102 (docs/tello.rst, "A final approach").
 FINAL_APPROACH_RADIUS = 0.4
-
-#: ``--height-approach auto``'s height (m) with ``--lost-board ask`` and the final approach:
-#: the view head's training poses reach +-0.2 m in height and the approach's radius is 0.4 m;
-#: made the default on 2026-11-29 by a rule fixed before the paired flights (agreement 288
-#: against 280 of 300 emulated episodes, docs/tello.rst, "The vertical leg").
-HEIGHT_APPROACH = 0.3
 
 #: ``--segment-slack auto``'s slack (m) with ``--lost-board ask``: about one 90th-percentile
 #: sideways error of the in-view head on its test frames (docs/tello.rst, "A head that can

@@ -232,7 +232,6 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--height-approach", "0.3", "--arrival-head", "none"], "it needs the head"),
     (["--height-approach", "0.9"], "--height-approach must be a distance in [0, 0.5] m"),
     (["--height-approach", "0"], "--height-approach must be a height above 0 m"),
-    (["--height-approach", "high"], "--height-approach must be a height (m), 'auto' or 'none'"),
     (["--height-approach", "0.3", "--final-approach", "none"], "it needs --final-approach"),
     (["--mirror-check", "0.1", "--arrival-head", "none"], "asks the learned arrival head twice"),
     (["--mirror-check", "-0.1"], "--mirror-check must be a distance in [0, 1] m, got -0.1"),
@@ -268,19 +267,11 @@ def test_a_head_that_can_decline_is_asked_by_default():
     common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
               "--reach-offset", "0.13"]
     view = fly_tello.parse_args([*common, "--arrival-head", "view"])
-    assert (view.arrival_head, view.lost_board, view.segment_slack, view.mirror_check,
-            view.height_approach) == (str(VIEW_WEIGHTS), "ask", fly_tello.SEGMENT_SLACK,
-                                      fly_tello.MIRROR_CHECK, fly_tello.HEIGHT_APPROACH)
+    assert (view.arrival_head, view.lost_board, view.segment_slack, view.mirror_check) == (
+        str(VIEW_WEIGHTS), "ask", fly_tello.SEGMENT_SLACK, fly_tello.MIRROR_CHECK)
     rooms = fly_tello.parse_args([*common, "--arrival-head", "rooms"])
-    assert (rooms.arrival_head, rooms.lost_board, rooms.segment_slack, rooms.mirror_check,
-            rooms.height_approach) == (str(ROOMS_WEIGHTS), "hold", None, None, None)
-    # the vertical leg: asked by default with the view head and the final approach only
-    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--height-approach",
-                                 "none"]).height_approach is None
-    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--final-approach",
-                                 "none"]).height_approach is None
-    assert fly_tello.parse_args([*common, "--arrival-head", "rooms", "--height-approach",
-                                 "0.2"]).height_approach == 0.2
+    assert (rooms.arrival_head, rooms.lost_board, rooms.segment_slack, rooms.mirror_check) == (
+        str(ROOMS_WEIGHTS), "hold", None, None)
     off = fly_tello.parse_args([*common, "--arrival-head", "view", "--segment-slack", "none",
                                 "--lost-board", "hold"])
     assert (off.lost_board, off.segment_slack, off.mirror_check) == ("hold", None, None)
