@@ -142,6 +142,37 @@ def test_arrival_steps_on_the_kept_step_logs(tmp_path, capsys):
         assert msg in (capsys.readouterr().err + str(e.value))
 
 
+def test_the_vertical_legs_published_figures_are_its_kept_flights():
+    """docs/tello.rst, "The vertical leg": the pooled figures in height_approach.json are
+    the kept episode tables' (twelve seeds, with and without --height-approach 0.3, paired
+    by episode), and they show what the page says: agreement unchanged, missed arrivals
+    traded for false "reached"."""
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    pooled = json.loads((res / "height_approach.json").read_text())
+    seeds = pooled["groups"]["decision"] + pooled["groups"]["confirmation"]
+    assert len(seeds) == 12
+    tot = {"with": [0, 0, 0, 0], "without": [0, 0, 0, 0]}
+    for s in seeds:
+        for tag, name in (("with", f"height_approach_s{s}"), ("without", f"obst_depth_s{s}")):
+            ep = pd.read_csv(res / f"{name}_episodes.csv")
+            summary = json.loads((res / f"{name}_summary.json").read_text())
+            assert len(ep) == 50 and summary["seed"] == s
+            assert summary.get("height_approach") == (0.3 if tag == "with" else None)
+            tel, sim = ep["success"].astype(bool), ep["success_sim"].astype(bool)
+            for i, v in enumerate(((sim).sum(), (tel == sim).sum(), (tel & ~sim).sum(),
+                                   (~tel & sim).sum())):
+                tot[tag][i] += int(v)
+    got = {k: dict(zip(("success", "agree", "false_reached", "missed"), v))
+           for k, v in tot.items()}
+    for tag, key in (("with", "height_approach"), ("without", "before_vertical_leg")):
+        assert {k: pooled["all"][key][k] for k in got[tag]} == got[tag]
+    assert got["with"]["agree"] == got["without"]["agree"] == 561
+    assert (got["with"]["missed"], got["without"]["missed"]) == (7, 16)
+    assert (got["with"]["false_reached"], got["without"]["false_reached"]) == (32, 23)
+    steps = sorted((res / "steps" / "height_approach").glob("height_approach_s*_steps.jsonl.gz"))
+    assert len(steps) == 12
+
+
 def test_bad_options_are_named_before_any_flight(capsys):
     with pytest.raises(SystemExit):
         fly_tello.main(["--run", str(POLICY), "--perception", "lidar"])
