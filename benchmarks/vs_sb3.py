@@ -8,7 +8,8 @@ Q-network (two dense ReLU layers of 256 on the features divided by the same
 per-feature scale, a linear head), Huber loss, plain (not double) DQN targets,
 no reward scaling, Adam (same learning rate and eps), gradient-norm clip 10,
 replay ratio (``updates_per_frame`` 0.25 -> SB3 ``train_freq`` 4; the loop collects
-batches of 4 frames, then takes its one gradient step, as SB3 does), batch size, replay
+batches of 4 frames, then takes its one gradient step, as SB3 does; ``--train-freq N``
+makes both collect N frames, then take N x 0.25 gradient steps), batch size, replay
 size, ``learning_starts``, hard target sync (SB3 counts it in env steps: the
 recipe's gradient steps / replay ratio) and linear epsilon-greedy exploration
 (uniformly random actions until ``learning_starts`` in both: SB3's rule, the loop's
@@ -93,8 +94,9 @@ SPEED_ARMS = ("dqnloop", "dqnloop_dqnloss", "dqnloop_sequential_acting", "dqnloo
 
 
 def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, out: Path,
-                  extra=()):
-    """The ``dqn_features`` recipe on the nine features alone, set up as the SB3 run is."""
+                  extra=(), train_freq: int = 4):
+    """The ``dqn_features`` recipe on the nine features alone, set up as the SB3 run is
+    (``train_freq``: frames collected between two optimisation phases, in both)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -106,9 +108,10 @@ def recipe_config(frames: int, seed: int, eval_every: int, eval_episodes: int, o
             "variant=dqn_features", "features.image=false", "features.inputs=[causal_features]",
             "features.history=0", "loss.double_dqn=false", "loss.reward_scale=1.0",
             "loss.function=huber", "optim.name=adam", "loss.updates_per_frame=0.25",
-            # SB3 collects train_freq = 1 / replay ratio steps, then takes one gradient
-            # step: the loop collects batches of that size, then optimises the same
-            "collector.frames_per_batch=4",
+            # SB3 collects train_freq steps (default 4 = 1 / replay ratio), then takes
+            # train_freq x replay ratio gradient steps: the loop collects batches of that
+            # size, then optimises the same
+            f"collector.frames_per_batch={train_freq}",
             f"collector.total_frames={frames}", f"seed={seed}", "threads=1", "progress=false",
             f"eval.interval_frames={eval_every}", f"eval.episodes={eval_episodes}",
             f"eval.final_episodes={eval_episodes}", "eval.keep_best=false",
@@ -139,6 +142,22 @@ def run_dqnloop(cfg) -> dict:
     return {"fps": float(summary["loop_frames_per_second"]), "evals": evals, "final": final}
 
 
+def sb3_schedule(cfg) -> tuple[int, int]:
+    """SB3's ``(train_freq, gradient_steps)`` for the loop's config: the loop's batch
+    (``collector.frames_per_batch``) and its updates per batch (x ``updates_per_frame``).
+
+    Raises:
+        ValueError: the batch does not make a whole number (>= 1) of gradient steps.
+    """
+    upf = float(cfg.loss.updates_per_frame)
+    train_freq = int(cfg.collector.frames_per_batch)
+    gradient_steps = round(train_freq * upf)
+    if gradient_steps < 1 or abs(gradient_steps - train_freq * upf) > 1e-9:
+        raise ValueError(f"--train-freq {train_freq} x updates_per_frame {upf:g} must be a whole "
+                         "number (>= 1) of gradient steps per collection phase")
+    return train_freq, gradient_steps
+
+
 def sb3_model(cfg, env, seed: int, fused: bool = False):
     """SB3's DQN with the recipe's settings and the same Q-network (``fused``: its Adam
     with PyTorch's fused kernel, as the recipe's ``optim.fused=auto``; SB3's default, like
@@ -163,14 +182,15 @@ def sb3_model(cfg, env, seed: int, fused: bool = False):
             return obs["causal_features"].float() / self.scale
 
     upf = float(cfg.loss.updates_per_frame)
-    train_freq = max(1, round(1.0 / upf))
+    train_freq, gradient_steps = sb3_schedule(cfg)
     frames = int(cfg.collector.total_frames)
     return DQN(
         "MultiInputPolicy", env, learning_rate=float(cfg.optim.lr),
         buffer_size=int(cfg.buffer.size), learning_starts=int(cfg.loss.learning_starts),
         batch_size=int(cfg.buffer.batch_size), gamma=float(cfg.loss.gamma),
-        train_freq=(train_freq, "step"), gradient_steps=1,
-        target_update_interval=int(cfg.loss.target_update_interval) * train_freq,
+        train_freq=(train_freq, "step"), gradient_steps=gradient_steps,
+        # SB3 counts the sync in env steps: the recipe's gradient steps / replay ratio
+        target_update_interval=round(int(cfg.loss.target_update_interval) / upf),
         exploration_initial_eps=float(cfg.exploration.eps_init),
         exploration_final_eps=float(cfg.exploration.eps_end),
         exploration_fraction=min(1.0, float(cfg.exploration.annealing_frames) / frames),
@@ -553,6 +573,11 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--arms", nargs="+", default=list(SPEED_ARMS), metavar="ARM",
                    help=f"the speed figure's runs, each repeat (default: all of {SPEED_ARMS}; "
                         "dqnloop and sb3 always run)")
+    p.add_argument("--train-freq", type=int, default=4,
+                   help="frames collected between two optimisation phases, in both libraries "
+                        "(the loop's collector.frames_per_batch, SB3's train_freq); each phase "
+                        "takes train_freq x updates_per_frame gradient steps (default 4: SB3's "
+                        "default, one step at the recipe's 0.25)")
     p.add_argument("--override", action="append", default=[],
                    help="a recipe override for every run of both libraries (repeatable), "
                         "e.g. loss.learning_starts=200")
@@ -571,10 +596,18 @@ def main(argv=None) -> list[dict]:
         import stable_baselines3  # noqa: F401
     except ImportError:
         p.error("stable-baselines3 is not installed: pip install -e '.[bench]'")
+    if a.train_freq < 1:
+        p.error(f"--train-freq must be >= 1, got {a.train_freq}")
+    with tempfile.TemporaryDirectory(prefix="vs_sb3_probe_") as tmp:
+        try:
+            sb3_schedule(recipe_config(1000, 0, 0, 1, Path(tmp), a.override, a.train_freq))
+        except ValueError as e:
+            p.error(str(e))
     import torch
 
     torch.set_num_threads(1)
     rows = []
+    tf = a.train_freq
     with tempfile.TemporaryDirectory(prefix="vs_sb3_") as tmp:
         if a.speed_frames:
             # beside them, the loop with TorchRL's own DQNLoss (loss.stateful=false: the same
@@ -595,7 +628,7 @@ def main(argv=None) -> list[dict]:
                 cfgs = {name: recipe_config(a.speed_frames, 0, 0, 1,
                                             Path(tmp) / f"speed{r}_{name}",
                                             [f"loss.learning_starts={starts}", "eval.episodes=0",
-                                             *extra, *a.override])
+                                             *extra, *a.override], tf)
                         for name, extra in variants.items()}
                 for name, cfg in cfgs.items():
                     fps[name].append(run_dqnloop(cfg)["fps"])
@@ -603,7 +636,7 @@ def main(argv=None) -> list[dict]:
                     fps[name].append(run_sb3(cfgs["dqnloop"], 0, 0, 1, fused=fused)["fps"])
             med = {k: statistics.median(v) for k, v in fps.items()}
             rows.append({"bench": "vs_sb3", "figure": "frames_per_second",
-                         "frames": a.speed_frames, "repeats": a.repeats,
+                         "frames": a.speed_frames, "repeats": a.repeats, "train_freq": tf,
                          **{k: [round(v, 1) for v in fps[k]] for k in fps},
                          **{f"{k}_median": round(v, 1) for k, v in med.items()},
                          **{f"ratio_{k}_over_{b}": round(med[k] / med[b], 3)
@@ -614,7 +647,7 @@ def main(argv=None) -> list[dict]:
                             for k in variants if k != "dqnloop" and "dqnloop" in variants}})
             print(json.dumps(rows[-1]), flush=True)
         if a.overheads:
-            cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override)
+            cfg = recipe_config(a.overheads, 0, 0, 1, Path(tmp) / "overheads", a.override, tf)
             runs = [stepping_fps(cfg, a.overheads) for _ in range(a.repeats)]
             rows.append({"bench": "vs_sb3", "figure": "stepping", "frames": a.overheads,
                          "unit": "frames/s", **{k: [r[k] for r in runs] for k in runs[0]}})
@@ -627,7 +660,7 @@ def main(argv=None) -> list[dict]:
             starts = min(1000, a.calls // 3)
             cfg = recipe_config(a.calls, 0, 0, 1, Path(tmp) / "calls",
                                 [f"loss.learning_starts={starts}", "eval.episodes=0",
-                                 "eval.final_episodes=0", *a.override])
+                                 "eval.final_episodes=0", *a.override], tf)
             rows.append({"bench": "vs_sb3", "figure": "calls_per_frame", "frames": a.calls,
                          "unit": "Python function calls per frame",
                          **call_counts(cfg, a.calls)})
@@ -635,7 +668,7 @@ def main(argv=None) -> list[dict]:
         results = {"dqnloop": [], "sb3": []}
         for seed in a.seeds:
             cfg = recipe_config(a.frames, seed, a.eval_every, a.eval_episodes,
-                                Path(tmp) / f"seed{seed}", a.override)
+                                Path(tmp) / f"seed{seed}", a.override, tf)
             results["dqnloop"].append(run_dqnloop(cfg))
             results["sb3"].append(run_sb3(cfg, seed, a.eval_every, a.eval_episodes))
         for lib, runs in results.items():

@@ -36,6 +36,32 @@ def test_same_network_and_settings_on_both_sides(tmp_path, monkeypatch):
     env.close()
 
 
+@pytest.mark.parametrize("train_freq, updates", [(8, 2), (16, 4)])
+def test_a_longer_collection_phase_on_both_sides(tmp_path, monkeypatch, train_freq, updates):
+    """``--train-freq N``: the loop collects N frames a batch and SB3 N steps a phase, and
+    each then takes N x 0.25 gradient steps; the target sync stays 250 gradient steps."""
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    bench = _bench()
+    cfg = bench.recipe_config(800, 0, 0, 1, tmp_path / "run", train_freq=train_freq)
+    assert cfg.collector.frames_per_batch == train_freq
+    env = bench.sb3_env(cfg)
+    model = bench.sb3_model(cfg, env, 0)
+    assert model.train_freq.frequency == train_freq and model.gradient_steps == updates
+    assert model.target_update_interval == 250 * 4
+    env.close()
+
+
+def test_a_collection_phase_of_part_of_an_update_is_named(tmp_path, capsys):
+    bench = _bench()
+    with pytest.raises(ValueError, match="--train-freq 6 x updates_per_frame 0.25"):
+        bench.sb3_schedule(bench.recipe_config(800, 0, 0, 1, tmp_path / "run", train_freq=6))
+    for bad, says in (("6", "--train-freq 6 x updates_per_frame 0.25 must be a whole"),
+                      ("0", "--train-freq must be >= 1, got 0")):
+        with pytest.raises(SystemExit):
+            bench.main(["--train-freq", bad, "--speed-frames", "0"])
+        assert says in capsys.readouterr().err
+
+
 def test_tiny_run_prints_both_figures(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
     rows = _bench().main(["--seeds", "0", "--frames", "300", "--eval-every", "150",
