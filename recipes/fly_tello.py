@@ -224,6 +224,16 @@ def parse_args(argv=None):
                         "within M m of the goal point's height, so the final approach flies "
                         "the vertical leg too (docs/tello.rst, 'The vertical leg'); default "
                         "none")
+    p.add_argument("--look-around", type=float, default=None, metavar="DEG",
+                   help="with a learned arrival head: where it puts the step within "
+                        "--look-around-radius of the goal point, turn DEG (1-45) right, as far "
+                        "left, and back, ask the head at the two turned views, and decide the "
+                        "arrival on the mean of the readings (docs/tello.rst, 'Looking around "
+                        "before landing'); default none")
+    p.add_argument("--look-around-radius", type=float, default=0.2, metavar="M",
+                   help="with --look-around: look where the head's segment comes within M m "
+                        "of the goal point (default 0.2, the simulator's sphere; at least "
+                        "--reach-offset)")
     p.add_argument("--mirror-check", default="auto", metavar="M",
                    help="with a learned arrival head: ask it on each frame and on its mirror "
                         "image, read the mean of the two, and take nothing from a frame whose "
@@ -384,6 +394,18 @@ def parse_args(argv=None):
         if a.final_approach is None:
             p.error(f"--height-approach {a.height_approach:g} lets the final approach fly the "
                     "vertical leg: it needs --final-approach")
+    if a.look_around is not None:
+        if a.arrival_head is None or a.arrival_head == "depth":
+            p.error(f"--look-around {a.look_around:g} asks the learned arrival head at turned "
+                    "views: it needs the head")
+        if not 1 <= a.look_around <= 45:
+            p.error(f"--look-around must be a turn of 1-45 deg, got {a.look_around:g}")
+        _head_distance(p, a, "--look-around-radius", a.look_around_radius,
+                       "widens where the arrival head looks around")
+        if a.look_around_radius < (a.reach_offset or 0.0):
+            p.error(f"--look-around-radius {a.look_around_radius:g} is below --reach-offset "
+                    f"{a.reach_offset:g}: it would look at only some of the places where the "
+                    "rule fires")
     explicit = a.mirror_check not in ("auto", "none")
     a.mirror_check = _auto_distance(p, "--mirror-check", "distance", a.mirror_check,
                                     MIRROR_CHECK if a.lost_board == "ask" else None)
@@ -503,7 +525,7 @@ def _auto_distance(p, flag: str, what: str, value: str, auto: float | None) -> f
 #: The largest length (m) each arrival-head option takes (``benchmarks/sim_to_real.py``
 #: checks its pass-through options against the same bounds).
 HEAD_DISTANCE_MAX = {"--segment-slack": 1.0, "--height-margin": 0.5, "--mirror-check": 1.0,
-                     "--height-approach": 0.5}
+                     "--height-approach": 0.5, "--look-around-radius": 0.5}
 
 
 def head_distance_error(flag: str, value: float) -> str | None:
@@ -650,6 +672,9 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["height_margin"] = getattr(args, "height_margin", None)
         kw["height_approach"] = getattr(args, "height_approach", None)
         kw["mirror_check"] = getattr(args, "mirror_check", None)
+        if getattr(args, "look_around", None) is not None:
+            kw["look_around"] = args.look_around
+            kw["look_around_radius"] = args.look_around_radius
     if layout is not None:  # the emulated scene's flight volume (new_episode: each layout's)
         kw.update(zip(("geofence", "geofence_origin", "max_height"), layout.fence()))
     real = args.host is not None
@@ -901,9 +926,11 @@ def main(argv=None) -> dict:
         summary["lost_board"] = args.lost_board
     if getattr(args, "segment_slack", None) is not None:
         summary["segment_slack"] = args.segment_slack
-    for opt in ("height_margin", "height_approach", "mirror_check"):
+    for opt in ("height_margin", "height_approach", "mirror_check", "look_around"):
         if getattr(args, opt, None) is not None:
             summary[opt] = getattr(args, opt)
+    if getattr(args, "look_around", None) is not None:
+        summary["look_around_radius"] = args.look_around_radius
     if real:
         confirm_real_flight(args.host, args.yes or args.dry_run)
         detector, depth = perception_models(args.perception, None, args.depth_weights,
@@ -964,6 +991,8 @@ def main(argv=None) -> dict:
             finally:
                 base.close()
             summary["wall_s"] = round(time.perf_counter() - t0, 1)
+            if getattr(args, "look_around", None) is not None:
+                summary["look_arounds"] = base.look_arounds  # steps the drone looked around
         summary["success_sim"] = summarize(rows, "success_sim")
         # the arrival rule against the simulator's verdict, episode by episode
         summary["agreement"] = round(float(np.mean([r["success"] == r["success_sim"]

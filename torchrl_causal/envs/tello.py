@@ -280,6 +280,17 @@ class TelloEnv(EnvBase):
             whose two sideways readings lie more than this (m) apart gives nothing, as a
             frame the head declines does. None (default): one reading of the frame
             (docs/tello.rst, "Asking the head twice").
+        look_around: with a learned ``arrival_head``, a turn (deg, 1-45): where the head
+            puts the step's segment within ``look_around_radius`` of the goal point, the
+            drone turns this far right, then as far left of its heading, then back, asking
+            the head at each of the two turned views (with the same checks: the in-view
+            output, ``mirror_check``), and the rule decides again on the mean of the
+            readings at that place (the head reads the board's frame, whatever the yaw).
+            The head's errors at one place differ enough between views 12 deg apart that
+            their mean halved the rule's false firings on rendered poses
+            (docs/tello.rst, "Looking around before landing"). None (default): one view.
+        look_around_radius: the segment distance (m) within which ``look_around`` looks
+            (default 0.2, the simulator's sphere; at least the rule's ``max_goal_offset``).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
             default the take-off frame: x forward, y left at take-off), checked on
             the dead-reckoned position before each move; None: no geofence.
@@ -353,6 +364,8 @@ class TelloEnv(EnvBase):
         height_margin: float | None = None,
         height_approach: float | None = None,
         mirror_check: float | None = None,
+        look_around: float | None = None,
+        look_around_radius: float = 0.2,
         geofence: tuple[float, float, float, float] | None = (-2.0, -3.0, 5.0, 3.0),
         geofence_origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_height: float = 0.2,
@@ -490,6 +503,24 @@ class TelloEnv(EnvBase):
                              "frame with final_approach's fitted heading: it needs "
                              "final_approach")
         self.lost_board = lost_board
+        if look_around is not None:
+            if not callable(getattr(arrival_head, "estimate", None)):
+                raise ValueError(f"look_around={look_around!r} asks a learned arrival head at "
+                                 "turned views: it needs a GoalOffsetEstimator as arrival_head, "
+                                 f"got {type(arrival_head).__name__}")
+            look_around = _num("look_around", look_around, 1)
+            if look_around > 45:
+                raise ValueError(f"look_around={look_around!r}: a turn of 1-45 deg keeps the "
+                                 "board in view")
+            look_around = int(round(look_around))
+            look_around_radius = _num("look_around_radius", look_around_radius, 0, strict=True)
+            if look_around_radius < (self.reach_rule.max_goal_offset or 0.0):
+                raise ValueError(f"look_around_radius={look_around_radius!r} is below the "
+                                 "rule's max_goal_offset "
+                                 f"({self.reach_rule.max_goal_offset!r}): it would look only "
+                                 "at some of the places where the rule fires")
+        self.look_around, self.look_around_radius = look_around, look_around_radius
+        self.look_arounds = 0
         if not isinstance(arrival_fusion, bool):
             raise ValueError(f"arrival_fusion must be a bool, got {arrival_fusion!r}")
         self.arrival_head = arrival_head
@@ -791,6 +822,8 @@ class TelloEnv(EnvBase):
         self._prev_dz = None  # the height sensor's offset from the goal height, last step
         self._prev_sighted = False  # the detector saw the board within range, last step
         self._fused = None  # (sum of (ahead, lateral), count) of the head's looks at one place
+        self._asked = None  # this step's head segment (start, end), for look_around
+        self._rule_args = None  # the reach rule's inputs of this step, but the offset
         if self.final_approach is not None:
             self.final_approach.reset()
         if getattr(self, "_plane", False):
@@ -894,16 +927,72 @@ class TelloEnv(EnvBase):
                 prev = np.array([cur[0], cur[1], prev[2]])
             self._prev_offset, self._prev_seen = cur, in_sight
             self._prev_world = self._world.copy()
-            if margin:  # the margin for the head's horizontal error only, along the segment
-                a = cur if prev is None else prev
-                pts = a[None] + np.linspace(0.0, 1.0, 41)[:, None] * (cur - a)[None]
-                return float((np.sqrt((np.hypot(pts[:, 0], pts[:, 1]) + margin) ** 2
-                                      + pts[:, 2] ** 2) - margin).min())
-            return segment_distance(cur if prev is None else prev, cur)
+            start = cur if prev is None else prev
+            self._asked = (start, cur)  # look_around reads this step's segment again
+            return self._segment_offset(start, cur)
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,
                                            moved=self._last_move, altitude=altitude)
+
+    def _segment_offset(self, start, cur) -> float:
+        """The rule's offset along the segment ``start`` -> ``cur`` (``(ahead, lateral,
+        dz)`` each), with ``height_margin`` for the head's horizontal error only."""
+        margin = self.height_margin or 0.0
+        if margin:  # the margin for the head's horizontal error only, along the segment
+            pts = start[None] + np.linspace(0.0, 1.0, 41)[:, None] * (cur - start)[None]
+            return float((np.sqrt((np.hypot(pts[:, 0], pts[:, 1]) + margin) ** 2
+                                  + pts[:, 2] ** 2) - margin).min())
+        return segment_distance(start, cur)
+
+    def _turned_look(self, frame):
+        """The arrival head's ``(ahead, lateral)`` on one more frame, with the checks of
+        :meth:`_goal_offset` (the in-view output, ``mirror_check``); None if declined."""
+        frame = np.asarray(frame)[None]
+        spread = None
+        if self.mirror_check is not None:
+            look, p_view, spread = self.arrival_head.estimate_mirrored(frame)
+        else:
+            look, p_view = self.arrival_head.estimate(frame)
+        if p_view is not None and float(p_view[0]) < 0.5:
+            return None
+        if spread is not None and float(spread[0]) > self.mirror_check:
+            return None
+        return np.asarray(look, float).reshape(-1)[:2]
+
+    def _look_around(self, obs):
+        """``look_around``: turns right, left and back at the step's place, asks the head at
+        the two turned views and decides the step's arrival again on the mean of the
+        readings. Returns ``(obs, crashed)`` (``obs["reached"]`` replaced)."""
+        start, cur = self._asked
+        one_place = start is cur  # the head was not asked the step before: no segment
+        looks, t = [cur[:2]], self.look_around
+        for turn, read in ((-t, True), (2 * t, True), (-t, False)):  # cw t, ccw 2t, cw t
+            cmd = f"{'ccw' if turn > 0 else 'cw'} {abs(turn)}"
+            target = self._moved_pose(0.0, 0.0, 0.0, math.radians(turn))
+            since, crashed = self._fly(cmd, target, (0.0, 0.0, 0.0))
+            if crashed:
+                obs["crashed"][0], obs["reached"][0] = True, False
+                return obs, True
+            if read:
+                look = self._turned_look(self._fresh_frame(since))
+                if look is not None:
+                    looks.append(look)
+        self.look_arounds += 1
+        mean = np.mean(looks, axis=0)
+        cur = np.array([mean[0], mean[1], cur[2]])
+        if one_place:
+            start = cur
+        offset = self._segment_offset(start, cur)
+        args = self._rule_args
+        if args is None:  # a board held just after the detector lost it
+            reached = offset <= self.reach_rule.max_goal_offset
+        else:
+            reached = self.reach_rule(**args, goal_offset=offset)
+        obs["reached"][0] = bool(reached)
+        self._prev_offset = cur  # the next step's segment starts at the better reading
+        self._last_move = (0.0, 0.0, 0.0)
+        return obs, False
 
     def _carried(self, prev, dz: float) -> float | None:
         """``lost_board="carry"``: the segment from the head's last estimate ``prev`` to
@@ -937,14 +1026,16 @@ class TelloEnv(EnvBase):
         # the Tello's yaw is clockwise-positive degrees; without one, the commanded yaw
         self._yaw = -math.radians(float(st["yaw"])) if st and "yaw" in st else self._odom[3]
         box = meas.box[0].tolist()
+        self._asked = None
         offset = None if crashed else self._goal_offset(in_sight, depth[0], box, alt, frame,
                                                         dist)
         if not in_sight and offset is not None:  # the arrival head held a board just lost
             reached = offset <= self.reach_rule.max_goal_offset  # (no offset when crashed)
+            self._rule_args = None
         else:
-            reached = not crashed and self.reach_rule(
-                in_sight=in_sight, distance=dist, angle=angle, box=box,
-                width=self.image_size[1], altitude=alt, goal_offset=offset)
+            self._rule_args = dict(in_sight=in_sight, distance=dist, angle=angle, box=box,
+                                   width=self.image_size[1], altitude=alt)
+            reached = not crashed and self.reach_rule(**self._rule_args, goal_offset=offset)
         f = torch.from_numpy(np.array([in_sight, crashed, reached, out_of_bounds], dtype=np.bool_))
         s = torch.from_numpy(np.array([alt, bat, dist, angle], dtype=np.float32))
         goal_box = torch.tensor(box if in_sight else [0.0] * 4, dtype=torch.float32)
@@ -1110,6 +1201,10 @@ class TelloEnv(EnvBase):
                                               threshold=self.reach_rule.max_goal_offset)
                 if go is not None:
                     obs, crashed = self._approach(go, obs)
+            if (self.look_around is not None and not crashed and not out_of_bounds
+                    and self._asked is not None and self._segment_offset(*self._asked)
+                    <= self.look_around_radius):
+                obs, crashed = self._look_around(obs)
             st = self._state()
             if not crashed and not self.dry_run and st and st.get("h", 1) == 0:
                 crashed = True  # on the ground without having been told to land
