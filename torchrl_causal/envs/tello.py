@@ -288,7 +288,8 @@ class TelloEnv(EnvBase):
             readings at that place (the head reads the board's frame, whatever the yaw).
             The head's errors at one place differ enough between views 12 deg apart that
             their mean halved the rule's false firings on rendered poses
-            (docs/tello.rst, "Looking around before landing"). None (default): one view.
+            (docs/tello.rst, "Looking around before landing"); ``look_arounds`` counts
+            the steps it looked around. None (default): one view.
         look_around_radius: the segment distance (m) within which ``look_around`` looks
             (default 0.2, the simulator's sphere; at least the rule's ``max_goal_offset``).
         geofence: ``(x_min, y_min, x_max, y_max)`` (m) in the fence's frame (by
@@ -504,10 +505,10 @@ class TelloEnv(EnvBase):
                              "final_approach")
         self.lost_board = lost_board
         if look_around is not None:
-            if not callable(getattr(arrival_head, "estimate", None)):
-                raise ValueError(f"look_around={look_around!r} asks a learned arrival head at "
-                                 "turned views: it needs a GoalOffsetEstimator as arrival_head, "
-                                 f"got {type(arrival_head).__name__}")
+            if arrival_head is None or isinstance(arrival_head, BoardPlaneOffset):
+                raise ValueError(f"look_around={look_around!r} asks the arrival head at turned "
+                                 "views: it needs a head that reads frames, got "
+                                 f"{type(arrival_head).__name__}")
             look_around = _num("look_around", look_around, 1)
             if look_around > 45:
                 raise ValueError(f"look_around={look_around!r}: a turn of 1-45 deg keeps the "
@@ -949,11 +950,13 @@ class TelloEnv(EnvBase):
         """The arrival head's ``(ahead, lateral)`` on one more frame, with the checks of
         :meth:`_goal_offset` (the in-view output, ``mirror_check``); None if declined."""
         frame = np.asarray(frame)[None]
-        spread = None
+        spread = p_view = None
         if self.mirror_check is not None:
             look, p_view, spread = self.arrival_head.estimate_mirrored(frame)
-        else:
+        elif self.lost_board == "ask":
             look, p_view = self.arrival_head.estimate(frame)
+        else:
+            look = self.arrival_head(frame)
         if p_view is not None and float(p_view[0]) < 0.5:
             return None
         if spread is not None and float(spread[0]) > self.mirror_check:
