@@ -267,6 +267,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--mirror-check", "0.1", "--arrival-head", "none"], "asks the learned arrival head twice"),
     (["--look-around", "12", "--arrival-head", "none"], "it needs the head"),
     (["--look-around", "60"], "--look-around must be a turn of 1-45 deg, got 60"),
+    (["--look-around", "wide"], "--look-around must be a turn (deg), 'auto' or 'none', got 'wide'"),
     (["--look-around", "12", "--look-around-radius", "0.9"],
      "--look-around-radius must be a distance in [0, 0.5] m, got 0.9"),
     (["--look-around", "12", "--look-around-radius", "0.05"], "is below --reach-offset"),
@@ -292,6 +293,22 @@ def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, 
         fly_tello.main(["--run", str(POLICY), "--out", str(out), *argv])
     assert message in capsys.readouterr().err
     assert not (out / "episodes.csv").exists()
+
+
+def test_the_view_head_looks_around_by_default():
+    """``--look-around auto`` (default): 12 deg where the view head flies (``--lost-board
+    ask``), none with the other heads or without one; a number or ``none`` overrides it."""
+    common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
+              "--reach-offset", "0.13"]
+    view = fly_tello.parse_args([*common, "--arrival-head", "view"])
+    assert view.lost_board == "ask" and view.look_around == fly_tello.LOOK_AROUND == 12
+    assert view.look_around_radius == 0.2
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around",
+                                 "none"]).look_around is None
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around",
+                                 "20"]).look_around == 20
+    assert fly_tello.parse_args([*common, "--arrival-head", "rooms"]).look_around is None
+    assert fly_tello.parse_args(["--run", str(POLICY)]).look_around is None  # thesis room
 
 
 def test_a_head_that_can_decline_is_asked_by_default():
