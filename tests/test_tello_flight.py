@@ -173,6 +173,46 @@ def test_the_vertical_legs_published_figures_are_its_kept_flights():
     assert len(steps) == 12
 
 
+@pytest.mark.parametrize("name, option, value, agree, false_reached, missed", [
+    ("look_around", "look_around", 12.0, (577, 562), (11, 28), (12, 10)),
+    ("cap02", "height_approach", 0.2, (574, 562), (18, 28), (8, 10)),
+])
+def test_the_fresh_seeds_published_figures_are_their_kept_flights(name, option, value, agree,
+                                                                   false_reached, missed):
+    """docs/tello.rst, "Looking around before landing" and the 0.2 m cap: the pooled figures
+    in look_around.json / cap02.json are the kept episode tables' (twelve fresh seeds, each
+    variant paired by episode with the default flights of the same seeds), and both rules
+    fixed before the flights are met by them."""
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    pooled = json.loads((res / f"{name}.json").read_text())
+    tot = {}
+    for group in ("decision", "confirmation"):
+        seeds = pooled[group]["seeds"]
+        assert len(seeds) == 6
+        g = {"variant": [0, 0, 0, 0], "default": [0, 0, 0, 0]}
+        for s in seeds:
+            for tag, stem in (("variant", f"{name}_s{s}"), ("default", f"fresh30_default_s{s}")):
+                ep = pd.read_csv(res / f"{stem}_episodes.csv")
+                summary = json.loads((res / f"{stem}_summary.json").read_text())
+                assert len(ep) == 50 and summary["seed"] == s
+                assert summary.get(option) == (value if tag == "variant" else None)
+                tel, sim = ep["success"].astype(bool), ep["success_sim"].astype(bool)
+                for i, v in enumerate((sim.sum(), (tel == sim).sum(), (tel & ~sim).sum(),
+                                       (~tel & sim).sum())):
+                    g[tag][i] += int(v)
+        for tag in g:
+            for i, key in enumerate(("success", "agreement", "false_reached", "missed")):
+                assert pooled[group][f"{key}_{tag}"] == g[tag][i]
+                tot.setdefault((tag, key), 0)
+                tot[(tag, key)] += g[tag][i]
+        assert g["variant"][1] >= g["default"][1] and g["variant"][2] < 15  # the rule
+    assert (tot[("variant", "agreement")], tot[("default", "agreement")]) == agree
+    assert (tot[("variant", "false_reached")], tot[("default", "false_reached")]) == false_reached
+    assert (tot[("variant", "missed")], tot[("default", "missed")]) == missed
+    steps = sorted((res / "steps" / "fresh30").glob(f"{name}_s*_steps.jsonl.gz"))
+    assert len(steps) == 12
+
+
 def test_bad_options_are_named_before_any_flight(capsys):
     with pytest.raises(SystemExit):
         fly_tello.main(["--run", str(POLICY), "--perception", "lidar"])
