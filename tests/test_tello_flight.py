@@ -142,6 +142,18 @@ def test_arrival_steps_on_the_kept_step_logs(tmp_path, capsys):
         assert msg in (capsys.readouterr().err + str(e.value))
 
 
+def _kept_flight(res, stem: str, seed: int, option: str, value) -> list[int]:
+    """A kept 50-episode flight's ``[success, agreement, false "reached", missed]`` (its
+    summary says the seed and ``option``'s value it was flown with)."""
+    ep = pd.read_csv(res / f"{stem}_episodes.csv")
+    summary = json.loads((res / f"{stem}_summary.json").read_text())
+    assert len(ep) == 50 and summary["seed"] == seed
+    assert summary.get(option) == value
+    tel, sim = ep["success"].astype(bool), ep["success_sim"].astype(bool)
+    return [int(v) for v in (sim.sum(), (tel == sim).sum(), (tel & ~sim).sum(),
+                             (~tel & sim).sum())]
+
+
 def test_the_vertical_legs_published_figures_are_its_kept_flights():
     """docs/tello.rst, "The vertical leg": the pooled figures in height_approach.json are
     the kept episode tables' (twelve seeds, with and without --height-approach 0.3, paired
@@ -154,14 +166,8 @@ def test_the_vertical_legs_published_figures_are_its_kept_flights():
     tot = {"with": [0, 0, 0, 0], "without": [0, 0, 0, 0]}
     for s in seeds:
         for tag, name in (("with", f"height_approach_s{s}"), ("without", f"obst_depth_s{s}")):
-            ep = pd.read_csv(res / f"{name}_episodes.csv")
-            summary = json.loads((res / f"{name}_summary.json").read_text())
-            assert len(ep) == 50 and summary["seed"] == s
-            assert summary.get("height_approach") == (0.3 if tag == "with" else None)
-            tel, sim = ep["success"].astype(bool), ep["success_sim"].astype(bool)
-            for i, v in enumerate(((sim).sum(), (tel == sim).sum(), (tel & ~sim).sum(),
-                                   (~tel & sim).sum())):
-                tot[tag][i] += int(v)
+            got = _kept_flight(res, name, s, "height_approach", 0.3 if tag == "with" else None)
+            tot[tag] = [a + b for a, b in zip(tot[tag], got)]
     got = {k: dict(zip(("success", "agree", "false_reached", "missed"), v))
            for k, v in tot.items()}
     for tag, key in (("with", "height_approach"), ("without", "before_vertical_leg")):
@@ -192,14 +198,8 @@ def test_the_fresh_seeds_published_figures_are_their_kept_flights(name, option, 
         g = {"variant": [0, 0, 0, 0], "default": [0, 0, 0, 0]}
         for s in seeds:
             for tag, stem in (("variant", f"{name}_s{s}"), ("default", f"fresh30_default_s{s}")):
-                ep = pd.read_csv(res / f"{stem}_episodes.csv")
-                summary = json.loads((res / f"{stem}_summary.json").read_text())
-                assert len(ep) == 50 and summary["seed"] == s
-                assert summary.get(option) == (value if tag == "variant" else None)
-                tel, sim = ep["success"].astype(bool), ep["success_sim"].astype(bool)
-                for i, v in enumerate((sim.sum(), (tel == sim).sum(), (tel & ~sim).sum(),
-                                       (~tel & sim).sum())):
-                    g[tag][i] += int(v)
+                got = _kept_flight(res, stem, s, option, value if tag == "variant" else None)
+                g[tag] = [a + b for a, b in zip(g[tag], got)]
         for tag in g:
             for i, key in enumerate(("success", "agreement", "false_reached", "missed")):
                 assert pooled[group][f"{key}_{tag}"] == g[tag][i]
