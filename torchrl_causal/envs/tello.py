@@ -894,21 +894,10 @@ class TelloEnv(EnvBase):
             if plane:
                 if look is None:
                     return None
-            elif ask or self.mirror_check is not None:
-                spread = None
-                if self.mirror_check is not None:  # the frame and its mirror image
-                    look, p_view, spread = self.arrival_head.estimate_mirrored(
-                        np.asarray(frame)[None])
-                else:
-                    look, p_view = self.arrival_head.estimate(np.asarray(frame)[None])
-                if ask and float(p_view[0]) < 0.5:  # the head declines: no board it can read
-                    return None
-                if spread is not None and float(spread[0]) > self.mirror_check:
-                    return None  # the two readings disagree: the head is unsure
-                look = np.asarray(look, float).reshape(-1)[:2]
             else:
-                look = np.asarray(self.arrival_head(np.asarray(frame)[None]),
-                                  float).reshape(-1)[:2]
+                look = self._read_head(frame)
+                if look is None:
+                    return None
             if self.final_approach is not None:
                 self.final_approach.record(self._world, look)
             stayed = prev is not None and not any(self._last_move[:2])  # no move across
@@ -929,8 +918,9 @@ class TelloEnv(EnvBase):
             self._prev_offset, self._prev_seen = cur, in_sight
             self._prev_world = self._world.copy()
             start = cur if prev is None else prev
-            self._asked = (start, cur)  # look_around reads this step's segment again
-            return self._segment_offset(start, cur)
+            offset = self._segment_offset(start, cur)
+            self._asked = (start, cur, offset)  # look_around reads this step's segment again
+            return offset
         if not in_sight or self.reach_rule.max_goal_offset is None:
             return None
         return self.reach_rule.goal_offset(depth.cpu().numpy(), box, self.hfov_deg,
@@ -946,28 +936,31 @@ class TelloEnv(EnvBase):
                                   + pts[:, 2] ** 2) - margin).min())
         return segment_distance(start, cur)
 
-    def _turned_look(self, frame):
-        """The arrival head's ``(ahead, lateral)`` on one more frame, with the checks of
-        :meth:`_goal_offset` (the in-view output, ``mirror_check``); None if declined."""
+    def _read_head(self, frame):
+        """The learned arrival head's ``(ahead, lateral)`` on one frame, or None where it
+        declines (``lost_board="ask"``: its in-view output under 0.5) or is unsure
+        (``mirror_check``: the frame's and its mirror image's sideways readings too far
+        apart)."""
         frame = np.asarray(frame)[None]
-        spread = p_view = None
-        if self.mirror_check is not None:
+        ask = self.lost_board == "ask"
+        if not ask and self.mirror_check is None:
+            return np.asarray(self.arrival_head(frame), float).reshape(-1)[:2]
+        spread = None
+        if self.mirror_check is not None:  # the frame and its mirror image
             look, p_view, spread = self.arrival_head.estimate_mirrored(frame)
-        elif self.lost_board == "ask":
-            look, p_view = self.arrival_head.estimate(frame)
         else:
-            look = self.arrival_head(frame)
-        if p_view is not None and float(p_view[0]) < 0.5:
+            look, p_view = self.arrival_head.estimate(frame)
+        if ask and float(p_view[0]) < 0.5:  # the head declines: no board it can read
             return None
         if spread is not None and float(spread[0]) > self.mirror_check:
-            return None
+            return None  # the two readings disagree: the head is unsure
         return np.asarray(look, float).reshape(-1)[:2]
 
     def _look_around(self, obs):
         """``look_around``: turns right, left and back at the step's place, asks the head at
         the two turned views and decides the step's arrival again on the mean of the
         readings. Returns ``(obs, crashed)`` (``obs["reached"]`` replaced)."""
-        start, cur = self._asked
+        start, cur, _ = self._asked
         one_place = start is cur  # the head was not asked the step before: no segment
         looks, t = [cur[:2]], self.look_around
         for turn, read in ((-t, True), (2 * t, True), (-t, False)):  # cw t, ccw 2t, cw t
@@ -978,7 +971,7 @@ class TelloEnv(EnvBase):
                 obs["crashed"][0], obs["reached"][0] = True, False
                 return obs, True
             if read:
-                look = self._turned_look(self._fresh_frame(since))
+                look = self._read_head(self._fresh_frame(since))
                 if look is not None:
                     looks.append(look)
         self.look_arounds += 1
@@ -1205,8 +1198,7 @@ class TelloEnv(EnvBase):
                 if go is not None:
                     obs, crashed = self._approach(go, obs)
             if (self.look_around is not None and not crashed and not out_of_bounds
-                    and self._asked is not None and self._segment_offset(*self._asked)
-                    <= self.look_around_radius):
+                    and self._asked is not None and self._asked[2] <= self.look_around_radius):
                 obs, crashed = self._look_around(obs)
             st = self._state()
             if not crashed and not self.dry_run and st and st.get("h", 1) == 0:
