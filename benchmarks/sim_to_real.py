@@ -209,7 +209,7 @@ def pooled_figure(policy: str, figures: list[dict]) -> dict:
 #: What a flight's summary.json records about its outcome, not its setting.
 _OUTCOME_KEYS = {"seed", "wall_s", "success_sim", "success", "agreement", "false_reached",
                  "missed_reach", "closest_sim_m_median", "crash_sim", "crashes", "mean_length",
-                 "dronenav"}
+                 "dronenav", "look_arounds"}
 
 
 def _load_flights(paths: list[Path]) -> list[dict]:
