@@ -641,6 +641,22 @@ def test_sim_to_real_pools_flights_already_flown(tmp_path, capsys):
         assert message in capsys.readouterr().err
 
 
+def test_sim_to_real_pools_the_look_around_flights(capsys):
+    """The twelve look-around flights docs/tello.rst reports pool as one setting: how often
+    each looked around is a flight's count, not its setting (the counts differ by seed)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    data = sorted((ROOT / "docs" / "_static" / "results" / "tello").glob(
+        "look_around_s*_summary.json"))
+    assert len(data) == 12
+    counts = {json.loads(f.read_text())["look_arounds"] for f in data}
+    assert len(counts) > 1  # differ between seeds, yet one setting
+    *seeds, pooled = sim_to_real.main(["--from-flights", *map(str, data)])
+    assert len(seeds) == 12 and pooled["episodes"] == 600
+    assert pooled["agreed"] == 577 and pooled["false_reached"] == 11
+
+
 def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_path, capsys):
     """--from-flights --compare-sim: DroneNavEnv's reference for a committed flight that
     flew without one (seed 89), on its own layouts and noise draws, paired with its episode
