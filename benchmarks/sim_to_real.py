@@ -58,6 +58,18 @@ emulator is not flown), paired episode by episode with the flight's episode tabl
 and the pooled object adds the pooled pairs and the emulator's success minus
 ``DroneNavEnv``'s on the same episodes with its 95 % interval (``paired_difference``). The figures of docs/tello.rst's "Twelve more fresh
 seeds" come from ``--from-flights docs/_static/results/tello/mirror_defaults_s*_summary.json``.
+``--against SUMMARY [SUMMARY ...]`` (with ``--from-flights``) compares those flights
+with flights of another setting on the same seeds -- the same layouts and noise draws --
+episode by episode, as a variant is compared with a default before it becomes one: a
+``{"figure": "sim_to_real_against", ...}`` object after the pooled one, with each arm's
+success, agreement, false "reached", missed arrivals and crashes (with 95 % Wilson
+intervals), the variant's success and agreement minus the baseline's with paired 95 %
+intervals (``success_paired``, ``agreement_paired``), the counts per seed, and
+``differ``: what the two settings flew differently. The figures of docs/tello.rst's
+"Looking around before landing" come from ``--from-flights
+docs/_static/results/tello/look_around_s*_summary.json --against
+docs/_static/results/tello/fresh30_default_s*_summary.json``.
+
 fly_tello's own output goes to stderr; each flight's folder (``episodes.csv``,
 ``summary.json``) goes under ``--out``.
 """
@@ -154,12 +166,100 @@ def paired_difference(pairs: dict) -> dict:
         >>> out["paired_difference"], out["paired_difference_ci95"]
         (-0.2, [-0.2999, -0.1001])
     """
-    n = sum(pairs.values())
-    b, c = pairs["emulator_only"], pairs["dronenav_only"]
+    diff, ci = _paired_ci(pairs["emulator_only"], pairs["dronenav_only"], sum(pairs.values()))
+    return {"dronenav_paired": dict(pairs), "paired_difference": diff,
+            "paired_difference_ci95": ci}
+
+
+def _paired_ci(b: int, c: int, n: int) -> tuple[float, list[float]]:
+    """``(b - c) / n`` for ``b`` episodes only the first arm finishes and ``c`` only the
+    second, of ``n`` paired ones, with its 95 % interval (normal approximation)."""
     diff = (b - c) / n
     half = 1.96 * math.sqrt(max(b + c - (b - c) ** 2 / n, 0.0)) / n
-    return {"dronenav_paired": dict(pairs), "paired_difference": round(diff, 4),
-            "paired_difference_ci95": [round(diff - half, 4), round(diff + half, 4)]}
+    return round(diff, 4), [round(diff - half, 4), round(diff + half, 4)]
+
+
+def _episode_verdicts(s: dict) -> tuple[list[bool], list[bool], list[bool]]:
+    """A flight's episode table, per episode: TelloEnv's own verdict, the simulator's and
+    whether it crashed. Raises ValueError for a missing table or one of another length."""
+    import csv
+
+    table = _episodes_csv(s["_file"])
+    if not table.is_file():
+        raise ValueError(f"--against: {str(s['_file'])!r} has no episode table "
+                         f"({str(table)!r})")
+    with table.open() as fh:
+        rows = list(csv.DictReader(fh))
+    if len(rows) != s["success_sim"]["n"]:
+        raise ValueError(f"--against: {str(table)!r} has {len(rows)} episodes, its summary "
+                         f"{s['success_sim']['n']}")
+    return ([bool(int(r["success"])) for r in rows], [bool(int(r["success_sim"])) for r in rows],
+            [bool(int(r["crash"])) for r in rows])
+
+
+def against_figure(variant: list[dict], baseline: list[dict]) -> dict:
+    """Flights of one setting against flights of another on the same seeds (so the same
+    layouts and noise draws), episode by episode: each arm's counts with their 95 % Wilson
+    intervals, and the variant's success and agreement minus the baseline's with paired
+    intervals (``variant_only`` / ``baseline_only``: episodes only that arm reaches, or
+    judges as the simulator does). ``differ`` names what the two settings flew differently.
+
+    Raises:
+        ValueError: the two sets of flights are not of the same seeds, or an episode table
+            is missing or of another length.
+    """
+    by_seed = {s["seed"]: s for s in baseline}
+    seeds = sorted(s["seed"] for s in variant)
+    if seeds != sorted(by_seed):
+        raise ValueError(f"--against: the flights are of seeds {seeds}, the baseline's of "
+                         f"{sorted(by_seed)}: they must be the same seeds")
+    setting = {k: v for k, v in variant[0].items()
+               if k not in _OUTCOME_KEYS and not k.startswith("_")}
+    other = {k: v for k, v in baseline[0].items()
+             if k not in _OUTCOME_KEYS and not k.startswith("_")}
+    differ = sorted(k for k in set(setting) | set(other) if setting.get(k) != other.get(k))
+    counts = {arm: dict.fromkeys(("success", "agreed", "false_reached", "missed_reach",
+                                  "crashes"), 0) for arm in ("variant", "baseline")}
+    paired = {key: {"variant_only": 0, "baseline_only": 0} for key in ("success", "agreement")}
+    per_seed = []
+    n = 0
+    for s in sorted(variant, key=lambda r: r["seed"]):
+        arms = {"variant": _episode_verdicts(s), "baseline": _episode_verdicts(by_seed[s["seed"]])}
+        if len(arms["variant"][0]) != len(arms["baseline"][0]):
+            raise ValueError(f"--against: seed {s['seed']} flew {len(arms['variant'][0])} "
+                             f"episodes, its baseline {len(arms['baseline'][0])}")
+        n += len(arms["variant"][0])
+        row = {"seed": s["seed"]}
+        ok = {}
+        for arm, (tel, sim, crash) in arms.items():
+            agree = [a == b for a, b in zip(tel, sim)]
+            got = {"success": sum(sim), "agreed": sum(agree),
+                   "false_reached": sum(a and not b for a, b in zip(tel, sim)),
+                   "missed_reach": sum(b and not a for a, b in zip(tel, sim)),
+                   "crashes": sum(crash)}
+            for k, v in got.items():
+                counts[arm][k] += v
+            row[arm] = got
+            ok[arm] = {"success": sim, "agreement": agree}
+        for key in paired:
+            pairs = list(zip(ok["variant"][key], ok["baseline"][key]))
+            paired[key]["variant_only"] += sum(a and not b for a, b in pairs)
+            paired[key]["baseline_only"] += sum(b and not a for a, b in pairs)
+        per_seed.append(row)
+    out = {"figure": "sim_to_real_against", "policy": variant[0].get("run") or "policy",
+           "seeds": seeds, "episodes": n, "differ": {k: [setting.get(k), other.get(k)]
+                                                     for k in differ}}
+    for arm, c in counts.items():
+        out[arm] = dict(c)
+        for k, key in (("success", "success_ci95"), ("agreed", "agreement_ci95"),
+                       ("false_reached", "false_reached_ci95")):
+            lo, hi = wilson(c[k], n)
+            out[arm][key] = [round(lo, 4), round(hi, 4)]
+    for key, pairs in paired.items():
+        diff, ci = _paired_ci(pairs["variant_only"], pairs["baseline_only"], n)
+        out[f"{key}_paired"] = {**pairs, "difference": diff, "ci95": ci}
+    out["per_seed"] = per_seed
+    return out
 
 
 def pooled_figure(policy: str, figures: list[dict]) -> dict:
@@ -350,6 +450,10 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--from-flights", nargs="+", type=Path, default=None, metavar="SUMMARY",
                    help="fly nothing: pool these fly_tello.py runs (summary.json files or their "
                         "folders), flights of one setting")
+    p.add_argument("--against", nargs="+", type=Path, default=None, metavar="SUMMARY",
+                   help="with --from-flights: compare those flights with these, flights of "
+                        "another setting on the same seeds, episode by episode (one "
+                        "sim_to_real_against object after the pooled one)")
     p.add_argument("--compare-sim", action="store_true",
                    help="with --from-flights: fly DroneNavEnv's reference (fly_tello.py "
                         "--compare-sim, --compare-perception's features) for each flight that "
@@ -357,9 +461,13 @@ def main(argv=None) -> list[dict]:
                         "and noise draws, paired "
                         "episode by episode with its episode table; the emulator is not flown")
     a = p.parse_args(argv)
+    if a.against is not None and a.from_flights is None:
+        p.error("--against compares flights already flown: give them with --from-flights")
     if a.from_flights is not None:
         try:
             runs = _load_flights(a.from_flights)
+            baseline = _load_flights(a.against) if a.against is not None else None
+            against = against_figure(runs, baseline) if baseline is not None else None
         except ValueError as e:
             p.error(str(e))
         name = runs[0]["run"] or "policy"
@@ -382,6 +490,9 @@ def main(argv=None) -> list[dict]:
             print(json.dumps(f), flush=True)
         figures.append(pooled_figure(name, figures))
         print(json.dumps(figures[-1]), flush=True)
+        if against is not None:
+            figures.append(against)
+            print(json.dumps(against), flush=True)
         return figures
     if a.compare_sim:
         p.error("--compare-sim is for --from-flights: flights flown here fly DroneNavEnv's "

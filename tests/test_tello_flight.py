@@ -657,6 +657,56 @@ def test_sim_to_real_pools_the_look_around_flights(capsys):
     assert pooled["agreed"] == 577 and pooled["false_reached"] == 11
 
 
+def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(capsys):
+    """--from-flights A --against B: the look-around against the default on the twelve
+    fresh seeds, episode by episode, gives docs/tello.rst's figures (look_around.json); the
+    setting that differs is named; flights of other seeds and --against alone are refused."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    variant = sorted(res.glob("look_around_s*_summary.json"))
+    baseline = sorted(res.glob("fresh30_default_s*_summary.json"))
+    assert len(variant) == len(baseline) == 12
+    figs = sim_to_real.main(["--from-flights", *map(str, variant),
+                             "--against", *map(str, baseline)])
+    got = figs[-1]
+    assert got["figure"] == "sim_to_real_against" and got["episodes"] == 600
+    assert set(got["differ"]) == {"look_around", "look_around_radius"}
+    assert got["differ"]["look_around"] == [12.0, None]
+    kept = json.loads((res / "look_around.json").read_text())
+    for arm, tag in (("variant", "variant"), ("baseline", "default")):
+        for key, name in (("success", "success"), ("agreed", "agreement"),
+                          ("false_reached", "false_reached"), ("missed_reach", "missed")):
+            assert got[arm][key] == sum(kept[g][f"{name}_{tag}"]
+                                        for g in ("decision", "confirmation"))
+    assert (got["variant"]["agreed"], got["baseline"]["agreed"]) == (577, 562)
+    # the paired counts add up to the arms' difference, and the interval holds the estimate
+    sp = got["success_paired"]
+    assert sp["variant_only"] - sp["baseline_only"] == (got["variant"]["success"]
+                                                        - got["baseline"]["success"])
+    assert sp["ci95"][0] < sp["difference"] < sp["ci95"][1]
+    assert sum(r["variant"]["agreed"] for r in got["per_seed"]) == 577
+    # the decision seeds alone: look_around.json's decision figures
+    dec = [f for f in variant if any(f"_s{x}_" in f.name for x in kept["decision"]["seeds"])]
+    base = [f for f in baseline if any(f"_s{x}_" in f.name for x in kept["decision"]["seeds"])]
+    one = sim_to_real.main(["--from-flights", *map(str, dec), "--against", *map(str, base)])[-1]
+    assert (one["success_paired"]["variant_only"],
+            one["success_paired"]["baseline_only"]) == (kept["decision"]["b10"],
+                                                         kept["decision"]["b01"])
+    assert [one["success_paired"]["difference"], *one["success_paired"]["ci95"]] == \
+        pytest.approx(kept["decision"]["success_diff_ci"], abs=1e-3)
+    capsys.readouterr()
+    for argv, message in (
+            (["--from-flights", *map(str, variant), "--against", *map(str, baseline[:6])],
+             "must be the same seeds"),
+            (["--against", str(baseline[0])], "give them with --from-flights")):
+        with pytest.raises(SystemExit) as exit_:
+            sim_to_real.main(argv)
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+
+
 def test_sim_to_real_flies_dronenavs_reference_for_flights_already_flown(tmp_path, capsys):
     """--from-flights --compare-sim: DroneNavEnv's reference for a committed flight that
     flew without one (seed 89), on its own layouts and noise draws, paired with its episode
