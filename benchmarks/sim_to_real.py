@@ -306,10 +306,8 @@ def pooled_figure(policy: str, figures: list[dict]) -> dict:
     return out
 
 
-#: What a flight's summary.json records about its outcome, not its setting.
-_OUTCOME_KEYS = {"seed", "wall_s", "success_sim", "success", "agreement", "false_reached",
-                 "missed_reach", "closest_sim_m_median", "crash_sim", "crashes", "mean_length",
-                 "dronenav", "look_arounds"}
+#: What a flight's summary.json records about its outcome, not its setting (and its seed).
+_OUTCOME_KEYS = fly_tello.SUMMARY_OUTCOME_KEYS | {"seed"}
 
 
 def _load_flights(paths: list[Path]) -> list[dict]:

@@ -64,6 +64,14 @@ CSV_COLUMNS = ["episode", "frames", "reward", "length", "success", "crash", "out
                "goal_distance_m", "goal_angle_deg", "approaches", "crash_sim"]
 
 
+
+#: The keys a flight's ``summary.json`` records about its outcome rather than its setting:
+#: ``benchmarks/sim_to_real.py --from-flights`` pools flights whose other keys all agree, so
+#: a new outcome written below belongs here too.
+SUMMARY_OUTCOME_KEYS = frozenset({
+    "wall_s", "look_arounds", "success_sim", "agreement", "false_reached", "missed_reach",
+    "closest_sim_m_median", "crash_sim", "success", "crashes", "mean_length", "dronenav"})
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--run", default=None,
