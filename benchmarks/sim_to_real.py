@@ -65,7 +65,8 @@ episode by episode, as a variant is compared with a default before it becomes on
 success, agreement, false "reached", missed arrivals and crashes (with 95 % Wilson
 intervals), the variant's success and agreement minus the baseline's with paired 95 %
 intervals (``success_paired``, ``agreement_paired``), the counts per seed, and
-``differ``: what the two settings flew differently. The figures of docs/tello.rst's
+``differ``: what the two settings flew differently. ``--plot PNG`` draws the success
+and agreement per seed (both arms with ``--against``) beside the pooled rates. The figures of docs/tello.rst's
 "Looking around before landing" come from ``--from-flights
 docs/_static/results/tello/look_around_s*_summary.json --against
 docs/_static/results/tello/fresh30_default_s*_summary.json``.
@@ -413,6 +414,69 @@ def _verdicts(s: dict) -> list[int] | None:
     return verdicts
 
 
+def plot_flights(figures: list[dict], path: Path) -> Path:
+    """Per seed, the simulator-judged success and the arrival rule's agreement of a
+    ``--from-flights`` run (its ``sim_to_real`` objects; with a ``sim_to_real_against`` one
+    last, both arms side by side), the pooled rates with their 95 % intervals at the right
+    and the targets as dashed lines; written to ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    against = figures[-1] if figures[-1]["figure"] == "sim_to_real_against" else None
+    pooled = next(f for f in figures if f["figure"] == "sim_to_real_pooled")
+    if against is not None:
+        rows = against["per_seed"]
+        seeds = [r["seed"] for r in rows]
+        n = {r["seed"]: f["episodes"] for r, f in zip(rows, figures)}
+        arms = {"variant": {k: [r["variant"][c] / n[r["seed"]] for r in rows]
+                            for k, c in (("success", "success"), ("agreement", "agreed"))},
+                "baseline": {k: [r["baseline"][c] / n[r["seed"]] for r in rows]
+                             for k, c in (("success", "success"), ("agreement", "agreed"))}}
+        total = {arm: {"success": (against[arm]["success"] / against["episodes"],
+                                   against[arm]["success_ci95"]),
+                       "agreement": (against[arm]["agreed"] / against["episodes"],
+                                     against[arm]["agreement_ci95"])} for arm in arms}
+        label = {arm: ", ".join(f"{k}={v[i]}" for k, v in against["differ"].items()) or arm
+                 for i, arm in enumerate(("variant", "baseline"))}
+    else:
+        seeds = [f["seed"] for f in figures if f["figure"] == "sim_to_real"]
+        per = [f for f in figures if f["figure"] == "sim_to_real"]
+        arms = {"flights": {"success": [f["success_sim"] for f in per],
+                            "agreement": [f["agreement"] for f in per]}}
+        total = {"flights": {"success": (pooled["success_sim"], pooled["success_sim_ci95"]),
+                             "agreement": (pooled["agreement"], pooled["agreement_ci95"])}}
+        label = {"flights": "flights"}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharey=False)
+    width = 0.8 / len(arms)
+    x = list(range(len(seeds)))
+    for ax, key, target in ((axes[0], "success", None),
+                            (axes[1], "agreement", TARGETS["agreement_min"])):
+        for i, (arm, vals) in enumerate(arms.items()):
+            off = (i - (len(arms) - 1) / 2) * width
+            bars = ax.bar([v + off for v in x], vals[key], width, label=label[arm])
+            rate, (lo, hi) = total[arm][key]
+            ax.errorbar([len(seeds) + 0.5 + off], [rate], yerr=[[rate - lo], [hi - rate]],
+                        fmt="o", color=bars.patches[0].get_facecolor(), capsize=4)
+        if key == "success" and pooled.get("dronenav") is not None and against is None:
+            ax.axhline(pooled["dronenav"], color="k", ls=":", lw=1,
+                       label="DroneNavEnv, same episodes")
+        if target is not None:
+            ax.axhline(target, color="k", ls="--", lw=1, label=f"target {target:g}")
+        ax.set_xticks(x + [len(seeds) + 0.5], [str(s) for s in seeds] + ["all"], rotation=60)
+        ax.set_xlabel("emulator seed")
+        ax.set_title({"success": "success (simulator-judged)",
+                      "agreement": "arrival rule agrees with the simulator"}[key])
+        ax.set_ylim(0.4 if key == "success" else 0.8, 1.0)
+        ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--policies", nargs="+", default=["thesis"],
@@ -452,6 +516,9 @@ def main(argv=None) -> list[dict]:
                    help="with --from-flights: compare those flights with these, flights of "
                         "another setting on the same seeds, episode by episode (one "
                         "sim_to_real_against object after the pooled one)")
+    p.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                   help="with --from-flights: draw success and agreement per seed (with "
+                        "--against, both settings side by side) to this PNG")
     p.add_argument("--compare-sim", action="store_true",
                    help="with --from-flights: fly DroneNavEnv's reference (fly_tello.py "
                         "--compare-sim, --compare-perception's features) for each flight that "
@@ -459,8 +526,11 @@ def main(argv=None) -> list[dict]:
                         "and noise draws, paired "
                         "episode by episode with its episode table; the emulator is not flown")
     a = p.parse_args(argv)
-    if a.against is not None and a.from_flights is None:
-        p.error("--against compares flights already flown: give them with --from-flights")
+    for flag, value in (("--against", a.against), ("--plot", a.plot)):
+        if value is not None and a.from_flights is None:
+            p.error(f"{flag} reads flights already flown: give them with --from-flights")
+    if a.plot is not None and a.plot.suffix.lower() != ".png":
+        p.error(f"--plot writes a PNG, got {str(a.plot)!r}")
     if a.from_flights is not None:
         try:
             runs = _load_flights(a.from_flights)
@@ -491,6 +561,8 @@ def main(argv=None) -> list[dict]:
         if against is not None:
             figures.append(against)
             print(json.dumps(against), flush=True)
+        if a.plot is not None:
+            plot_flights(figures, a.plot)
         return figures
     if a.compare_sim:
         p.error("--compare-sim is for --from-flights: flights flown here fly DroneNavEnv's "

@@ -657,10 +657,11 @@ def test_sim_to_real_pools_the_look_around_flights(capsys):
     assert pooled["agreed"] == 577 and pooled["false_reached"] == 11
 
 
-def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(capsys):
+def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
     """--from-flights A --against B: the look-around against the default on the twelve
     fresh seeds, episode by episode, gives docs/tello.rst's figures (look_around.json); the
-    setting that differs is named; flights of other seeds and --against alone are refused."""
+    setting that differs is named; --plot draws both per seed; flights of other seeds,
+    --against or --plot alone and a plot that is not a PNG are refused."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import sim_to_real
 
@@ -696,11 +697,22 @@ def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(capsys):
                                                          kept["decision"]["b01"])
     assert [one["success_paired"]["difference"], *one["success_paired"]["ci95"]] == \
         pytest.approx(kept["decision"]["success_diff_ci"], abs=1e-3)
+    # --plot draws both arms per seed
+    png = tmp_path / "per_seed.png"
+    sim_to_real.main(["--from-flights", *map(str, dec), "--against", *map(str, base),
+                      "--plot", str(png)])
+    import matplotlib.image
+
+    img = matplotlib.image.imread(png)
+    assert img.shape[0] > 300 and img.shape[1] > 1000
     capsys.readouterr()
     for argv, message in (
             (["--from-flights", *map(str, variant), "--against", *map(str, baseline[:6])],
              "must be the same seeds"),
-            (["--against", str(baseline[0])], "give them with --from-flights")):
+            (["--against", str(baseline[0])], "give them with --from-flights"),
+            (["--plot", str(png)], "give them with --from-flights"),
+            (["--from-flights", str(variant[0]), "--plot", str(tmp_path / "x.pdf")],
+             "--plot writes a PNG")):
         with pytest.raises(SystemExit) as exit_:
             sim_to_real.main(argv)
         assert exit_.value.code == 2
