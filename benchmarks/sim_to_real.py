@@ -180,19 +180,21 @@ def _paired_ci(b: int, c: int, n: int) -> tuple[float, list[float]]:
     return round(diff, 4), [round(diff - half, 4), round(diff + half, 4)]
 
 
-def _episode_verdicts(s: dict) -> tuple[list[bool], list[bool], list[bool]]:
+def _episode_verdicts(s: dict, flag: str = "--against") -> tuple[list[bool], list[bool],
+                                                                  list[bool]]:
     """A flight's episode table, per episode: TelloEnv's own verdict, the simulator's and
-    whether it crashed. Raises ValueError for a missing table or one of another length."""
+    whether it crashed. Raises ValueError (naming ``flag``) for a missing table or one of
+    another length than its summary."""
     import csv
 
     table = _episodes_csv(s["_file"])
     if not table.is_file():
-        raise ValueError(f"--against: {str(s['_file'])!r} has no episode table "
+        raise ValueError(f"{flag}: {str(s['_file'])!r} has no episode table "
                          f"({str(table)!r})")
     with table.open() as fh:
         rows = list(csv.DictReader(fh))
     if len(rows) != s["success_sim"]["n"]:
-        raise ValueError(f"--against: {str(table)!r} has {len(rows)} episodes, its summary "
+        raise ValueError(f"{flag}: {str(table)!r} has {len(rows)} episodes, its summary "
                          f"{s['success_sim']['n']}")
     return ([bool(int(r["success"])) for r in rows], [bool(int(r["success_sim"])) for r in rows],
             [bool(int(r["crash"])) for r in rows])
@@ -401,17 +403,9 @@ def _flown_depth_weights(s: dict) -> Path | None:
 def _verdicts(s: dict) -> list[int] | None:
     """The simulator's verdict per episode from the episode table beside a flight's
     summary (None without one). Raises ValueError for a table of another length."""
-    import csv
-
-    table = _episodes_csv(s["_file"])
-    if not table.is_file():
+    if not _episodes_csv(s["_file"]).is_file():
         return None
-    with table.open() as fh:
-        verdicts = [int(r["success_sim"]) for r in csv.DictReader(fh)]
-    if len(verdicts) != s["success_sim"]["n"]:
-        raise ValueError(f"--compare-sim: {str(table)!r} has {len(verdicts)} episodes, its "
-                         f"summary {s['success_sim']['n']}")
-    return verdicts
+    return [int(v) for v in _episode_verdicts(s, "--compare-sim")[1]]
 
 
 def plot_flights(figures: list[dict], path: Path) -> Path:
