@@ -216,11 +216,6 @@ def against_figure(variant: list[dict], baseline: list[dict]) -> dict:
     if seeds != sorted(by_seed):
         raise ValueError(f"--against: the flights are of seeds {seeds}, the baseline's of "
                          f"{sorted(by_seed)}: they must be the same seeds")
-    setting = {k: v for k, v in variant[0].items()
-               if k not in _OUTCOME_KEYS and not k.startswith("_")}
-    other = {k: v for k, v in baseline[0].items()
-             if k not in _OUTCOME_KEYS and not k.startswith("_")}
-    differ = sorted(k for k in set(setting) | set(other) if setting.get(k) != other.get(k))
     counts = {arm: dict.fromkeys(("success", "agreed", "false_reached", "missed_reach",
                                   "crashes"), 0) for arm in ("variant", "baseline")}
     paired = {key: {"variant_only": 0, "baseline_only": 0} for key in ("success", "agreement")}
@@ -232,7 +227,7 @@ def against_figure(variant: list[dict], baseline: list[dict]) -> dict:
             raise ValueError(f"--against: seed {s['seed']} flew {len(arms['variant'][0])} "
                              f"episodes, its baseline {len(arms['baseline'][0])}")
         n += len(arms["variant"][0])
-        row = {"seed": s["seed"]}
+        row = {"seed": s["seed"], "episodes": len(arms["variant"][0])}
         ok = {}
         for arm, (tel, sim, crash) in arms.items():
             agree = [a == b for a, b in zip(tel, sim)]
@@ -250,8 +245,7 @@ def against_figure(variant: list[dict], baseline: list[dict]) -> dict:
             paired[key]["baseline_only"] += sum(b and not a for a, b in pairs)
         per_seed.append(row)
     out = {"figure": "sim_to_real_against", "policy": variant[0].get("run") or "policy",
-           "seeds": seeds, "episodes": n, "differ": {k: [setting.get(k), other.get(k)]
-                                                     for k in differ}}
+           "seeds": seeds, "episodes": n, "differ": _setting_diff(variant[0], baseline[0])}
     for arm, c in counts.items():
         out[arm] = dict(c)
         for k, key in (("success", "success_ci95"), ("agreed", "agreement_ci95"),
@@ -337,16 +331,21 @@ def _load_flights(paths: list[Path]) -> list[dict]:
     twice = sorted({x for x in seeds if seeds.count(x) > 1})
     if twice:
         raise ValueError(f"--from-flights: seed(s) {twice} given more than once")
-    setting = {k: v for k, v in runs[0][1].items() if k not in _OUTCOME_KEYS}
     for f, s, _ in runs[1:]:
-        other = {k: v for k, v in s.items() if k not in _OUTCOME_KEYS}
-        diff = sorted(k for k in set(setting) | set(other) if setting.get(k) != other.get(k))
+        diff = _setting_diff(runs[0][1], s)
         if diff:
             raise ValueError(f"--from-flights: {str(f)!r} flew another setting than "
                              f"{str(runs[0][0])!r}: {', '.join(diff)} differ")
     for f, s, run_path in runs:  # where each came from (not part of its setting)
         s["_file"], s["_run_path"] = f, run_path
     return [s for _, s, _ in runs]
+
+
+def _setting_diff(a: dict, b: dict) -> dict:
+    """The setting keys two flight summaries disagree on, each with ``[a's, b's]`` value
+    (outcome keys and the loader's own ``_`` keys left out)."""
+    keys = {k for k in set(a) | set(b) if k not in _OUTCOME_KEYS and not k.startswith("_")}
+    return {k: [a.get(k), b.get(k)] for k in sorted(keys) if a.get(k) != b.get(k)}
 
 
 def _episodes_csv(summary_file: Path) -> Path:
@@ -423,11 +422,9 @@ def plot_flights(figures: list[dict], path: Path) -> Path:
     if against is not None:
         rows = against["per_seed"]
         seeds = [r["seed"] for r in rows]
-        n = {r["seed"]: f["episodes"] for r, f in zip(rows, figures)}
-        arms = {"variant": {k: [r["variant"][c] / n[r["seed"]] for r in rows]
-                            for k, c in (("success", "success"), ("agreement", "agreed"))},
-                "baseline": {k: [r["baseline"][c] / n[r["seed"]] for r in rows]
-                             for k, c in (("success", "success"), ("agreement", "agreed"))}}
+        arms = {arm: {k: [r[arm][c] / r["episodes"] for r in rows]
+                      for k, c in (("success", "success"), ("agreement", "agreed"))}
+                for arm in ("variant", "baseline")}
         total = {arm: {"success": (against[arm]["success"] / against["episodes"],
                                    against[arm]["success_ci95"]),
                        "agreement": (against[arm]["agreed"] / against["episodes"],
