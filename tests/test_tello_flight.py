@@ -304,6 +304,7 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--height-approach", "0.9"], "--height-approach must be a distance in [0, 0.5] m"),
     (["--height-approach", "0"], "--height-approach must be a height above 0 m"),
     (["--height-approach", "0.3", "--final-approach", "none"], "it needs --final-approach"),
+    (["--height-approach", "high"], "--height-approach must be a height (m), 'auto' or 'none'"),
     (["--mirror-check", "0.1", "--arrival-head", "none"], "asks the learned arrival head twice"),
     (["--look-around", "12", "--arrival-head", "none"], "it needs the head"),
     (["--look-around", "60"], "--look-around must be a turn of 1-45 deg, got 60"),
@@ -337,18 +338,30 @@ def test_bad_video_size_and_reach_rule_are_named_before_take_off(argv, message, 
 
 def test_the_view_head_looks_around_by_default():
     """``--look-around auto`` (default): 12 deg where the view head flies (``--lost-board
-    ask``), none with the other heads or without one; a number or ``none`` overrides it."""
+    ask``), none with the other heads or without one; a number or ``none`` overrides it.
+    ``--height-approach auto`` (default since 2026-12-02): 0.2 m wherever the look-around
+    flies with the final approach, none elsewhere; a height or ``none`` overrides it."""
     common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
               "--reach-offset", "0.13"]
     view = fly_tello.parse_args([*common, "--arrival-head", "view"])
     assert view.lost_board == "ask" and view.look_around == fly_tello.LOOK_AROUND == 12
     assert view.look_around_radius == 0.2
-    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around",
-                                 "none"]).look_around is None
-    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around",
-                                 "20"]).look_around == 20
-    assert fly_tello.parse_args([*common, "--arrival-head", "rooms"]).look_around is None
-    assert fly_tello.parse_args(["--run", str(POLICY)]).look_around is None  # thesis room
+    assert view.height_approach == fly_tello.HEIGHT_APPROACH == 0.2
+    off = fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around", "none"])
+    assert off.look_around is None and off.height_approach is None
+    turned = fly_tello.parse_args([*common, "--arrival-head", "view", "--look-around", "20"])
+    assert turned.look_around == 20 and turned.height_approach == 0.2
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--height-approach",
+                                 "none"]).height_approach is None
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--height-approach",
+                                 "0.3"]).height_approach == 0.3
+    # the final approach flies the vertical leg: without it auto asks for none
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--final-approach",
+                                 "none"]).height_approach is None
+    rooms = fly_tello.parse_args([*common, "--arrival-head", "rooms"])
+    assert rooms.look_around is None and rooms.height_approach is None
+    thesis = fly_tello.parse_args(["--run", str(POLICY)])  # thesis room: the shipped head
+    assert thesis.look_around is None and thesis.height_approach is None
 
 
 def test_a_head_that_can_decline_is_asked_by_default():
