@@ -670,6 +670,36 @@ def test_sim_to_real_pools_the_look_around_flights(capsys):
     assert pooled["agreed"] == 577 and pooled["false_reached"] == 11
 
 
+@pytest.mark.parametrize("kept, globs, episodes, agreed, false_reached", [
+    ("fresh16_default.jsonl", ["fresh16_default_s*"], 800, 766, 19),
+    ("fresh16_with_fresh8_combo.jsonl", ["fresh16_default_s*", "fresh8_combo_cap02_s*"],
+     1200, 1150, 31),
+])
+def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episodes, agreed,
+                                                           false_reached):
+    """docs/tello.rst, "Today's default on sixteen more fresh seeds": the kept flights of
+    today's default (look-around and the 0.2 m vertical leg; the sixteen seeds fixed before
+    they were flown, and with the eight that chose it) pool to the published figures, as
+    one setting, with the agreement target not shown and the false-"reached" one shown."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    data = sorted(f for g in globs for f in res.glob(f"{g}_summary.json"))
+    assert all(json.loads(f.read_text())["height_approach"] == 0.2 for f in data)
+    *seeds, pooled = sim_to_real.main(["--from-flights", *map(str, data)])
+    published = json.loads((res / kept).read_text().splitlines()[-1])
+    assert pooled == published
+    assert (pooled["episodes"], pooled["agreed"], pooled["false_reached"]) == (
+        episodes, agreed, false_reached)
+    assert pooled["targets"]["agreement"] and not pooled["targets"]["agreement_shown"]
+    assert pooled["targets"]["false_reached_shown"]
+    if kept == "fresh16_default.jsonl":  # the plan's seeds, in its order, every one flown
+        assert pooled["seeds"] == [293, 307, 311, 313, 317, 331, 337, 347, 349, 353, 359,
+                                   367, 373, 379, 383, 389]
+        assert len(list((res / "steps" / "fresh16").glob("*_steps.jsonl.gz"))) == 16
+
+
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
     """--from-flights A --against B: the look-around against the default on the twelve
     fresh seeds, episode by episode, gives docs/tello.rst's figures (look_around.json); the
