@@ -698,6 +698,16 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         assert pooled["seeds"] == [293, 307, 311, 313, 317, 331, 337, 347, 349, 353, 359,
                                    367, 373, 379, 383, 389]
         assert len(list((res / "steps" / "fresh16").glob("*_steps.jsonl.gz"))) == 16
+        # DroneNavEnv's reference on the same episodes: the emulator's side is the kept
+        # flights', and the paired counts add up to both sides' successes
+        ref = json.loads((res / "fresh16_dronenav_reference.jsonl").read_text()
+                         .splitlines()[-1])
+        for key in ("episodes", "agreed", "false_reached", "success_sim"):
+            assert ref[key] == pooled[key]
+        pairs = ref["dronenav_paired"]
+        assert pairs["both"] + pairs["emulator_only"] == round(pooled["success_sim"] * 800)
+        assert pairs["both"] + pairs["dronenav_only"] == round(ref["dronenav"] * 800) == 709
+        assert ref["paired_difference_ci95"][1] < 0 and not ref["targets"]["inside_dronenav_ci"]
 
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
