@@ -14,6 +14,8 @@ registration) stays cheap and free of import cycles with torchrl.
   its schema :data:`GRIDNAV_SCHEMA`, expert CBNs :func:`gridnav_expert_dags` and
   the TorchRL factory :func:`make_gridnav_env`.
 * :mod:`~torchrl_causal.envs.tello` -- :class:`TelloEnv`, the real DJI Tello (djitellopy) with safety.
+* :mod:`~torchrl_causal.envs.tello_video` -- :class:`TelloFrameReader`, djitellopy's video
+  reader that skips corrupt packets instead of stopping.
 * :mod:`~torchrl_causal.envs.tello_emulator` -- :class:`TelloEmulator`, the Tello SDK over UDP
   with H.264 video, backed by :class:`DroneNavEnv` (software in the loop).
 * :mod:`~torchrl_causal.envs.oracle` -- :class:`ShortestPathPlanner` (A* over the env's own
@@ -75,6 +77,7 @@ _LAZY = {
     "OraclePolicy": "oracle",
     "PlanningError": "oracle",
     "TelloFaults": "tello_emulator",
+    "TelloFrameReader": "tello_video",
 }
 
 __all__ = sorted(_LAZY)

@@ -691,7 +691,7 @@ class TelloEnv(EnvBase):
                                         f"within {self.command_timeout} s")
             self._send("streamon")
             self.tello.stream_on = True
-            self._frame_reader = self.tello.get_frame_read()
+            self._frame_reader = self._open_video()
         self._connected = True
         if self.keepalive_s is not None and not self.dry_run:
             self._keepalive_thread = threading.Thread(target=self._keepalive_loop, daemon=True,
@@ -744,6 +744,14 @@ class TelloEnv(EnvBase):
         z = st.get("tof", 0) / 100.0 if st else 1.0
         self._odom = (0.0, 0.0, z if not self.dry_run else 1.0, 0.0)
 
+    def _open_video(self):
+        from .tello_video import TelloFrameReader
+
+        try:
+            return TelloFrameReader.open(self.tello)
+        except Exception as e:  # djitellopy's TelloException, PyAV's errors
+            raise TelloVideoError(f"cannot open the Tello's video stream: {e}") from e
+
     # ------------------------------------------------------------------ observation
     def _fresh_frame(self, since) -> np.ndarray:
         if self.dry_run:
@@ -752,6 +760,9 @@ class TelloEnv(EnvBase):
         if self.settle_s:
             time.sleep(self.settle_s)
         reader = self._frame_reader
+        if not reader.alive:  # the stream ended (a dropped link): open it again, once
+            LOGGER.warning("Tello video: the decoder stopped (%r); reopening the stream", reader.error)
+            reader = self._frame_reader = self._open_video()
         seen, last = 0, since
         t0 = time.monotonic()
         while seen < max(1, self.fresh_frames):
