@@ -71,11 +71,13 @@ class TelloFrameReader(BackgroundFrameRead):
         error: what ended the thread early (None while it runs or after :meth:`stop`).
 
     Example:
-        >>> from torchrl_causal.envs.tello_emulator import TelloEmulator
-        >>> with TelloEmulator(fps=20, video_size=(240, 320)) as emu:  # doctest: +SKIP
-        ...     tello = emu.client(); tello.connect(); tello.streamon()
-        ...     reader = TelloFrameReader.open(tello)
-        ...     assert tello.get_frame_read() is reader
+        >>> from djitellopy.tello import BackgroundFrameRead
+        >>> issubclass(TelloFrameReader, BackgroundFrameRead)  # a drop-in for get_frame_read()'s
+        True
+        >>> TelloFrameReader.open(None)  # the module's example streams real H.264 over UDP
+        Traceback (most recent call last):
+        ...
+        ValueError: TelloFrameReader.open needs a tello or an address
     """
 
     def __init__(self, tello: Tello | None, address: str, with_queue: bool = False, maxsize: int = 32):
