@@ -28,3 +28,36 @@ def test_docs_page_examples_run(page):
         torchrl_logger.setLevel(level)
     assert result.attempted > 10, f"{page}: only {result.attempted} examples found"
     assert result.failed == 0, f"{page}: {result.failed} of {result.attempted} examples failed"
+
+
+_ADORNMENT = set("=-^~\"'`#*+:.")
+
+
+def _short_title_underlines(text: str) -> list[tuple[int, str]]:
+    """(line number, title) for each section title whose underline is shorter than it,
+    the warning ``make docs`` (``sphinx -W``) turns into a failed build."""
+    lines = text.splitlines()
+    short = []
+    for i in range(1, len(lines)):
+        line, title = lines[i], lines[i - 1]
+        if (len(line) >= 4 and len(set(line)) == 1 and line[0] in _ADORNMENT
+                and title.strip() and not title[0].isspace() and len(set(title)) > 1
+                and (i == 1 or not lines[i - 2].strip() or set(lines[i - 2]) == set(line))
+                and len(title) > len(line)):
+            short.append((i, title))
+    return short
+
+
+def test_short_title_underlines_are_found():
+    """The check finds an underline two characters short (as one was on 2026-12-03) and
+    passes titles underlined to their length, overlined ones and table borders."""
+    bad = "Intro\n\nA title of twenty-one\n^^^^^^^^^^^^^^^^^^^\n\ntext\n"
+    assert _short_title_underlines(bad) == [(3, "A title of twenty-one")]
+    good = ("=====\nTop\n=====\n\nA title\n-------\n\n=====  =====\n a      b\n=====  =====\n")
+    assert _short_title_underlines(good) == []
+
+
+@pytest.mark.parametrize("page", sorted(p.name for p in DOCS.glob("*.rst")))
+def test_docs_page_titles_are_underlined_to_their_length(page):
+    """Caught here, in ``make test``, before the docs build fails on it."""
+    assert _short_title_underlines((DOCS / page).read_text()) == []
