@@ -679,6 +679,9 @@ def test_sim_to_real_pools_the_look_around_flights(capsys):
      2000, 1918, 51, False),  # the plan's headline: not shown (0.9494)
     ("fresh24_with_fresh16_fresh8_combo.jsonl",
      ["fresh16_default_s*", "fresh24_default_s*", "fresh8_combo_cap02_s*"], 2400, 2302, 63, True),
+    ("third16_default.jsonl", ["third16_default_s*"], 800, 761, 29, False),
+    ("third16_with_fresh40.jsonl",  # the third and last look's headline: not shown
+     ["fresh16_default_s*", "fresh24_default_s*", "third16_default_s*"], 2800, 2679, 80, False),
 ])
 def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episodes, agreed,
                                                            false_reached, shown):
@@ -698,7 +701,19 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
     assert (pooled["episodes"], pooled["agreed"], pooled["false_reached"]) == (
         episodes, agreed, false_reached)
     assert pooled["targets"]["agreement"] and pooled["targets"]["agreement_shown"] == shown
-    assert pooled["targets"]["false_reached_shown"]
+    # the sixteen seeds of the third look alone do not show it (29 in 800, upper end 0.052)
+    assert pooled["targets"]["false_reached_shown"] == (kept != "third16_default.jsonl")
+    if kept == "third16_default.jsonl":  # the plan's seeds, every one flown, step logs kept
+        assert pooled["seeds"] == [557, 563, 569, 571, 577, 587, 593, 599, 601, 607, 613, 617,
+                                   619, 631, 641, 643]
+        assert len(list((res / "steps" / "third16").glob("*_steps.jsonl.gz"))) == 16
+    if kept == "third16_with_fresh40.jsonl":  # decided by the 98.33 % interval (three looks)
+        from results import wilson
+
+        lo, _ = wilson(pooled["agreed"], pooled["episodes"], z=2.394)
+        _, hi = wilson(pooled["false_reached"], pooled["episodes"], z=2.394)
+        assert round(lo, 4) == 0.9466 and lo < 0.95  # agreement: not shown, the last look
+        assert round(hi, 4) == 0.0371 and hi < 0.05  # false "reached": shown
     if kept == "fresh24_default.jsonl":  # the plan's seeds, every one flown, step logs kept
         assert pooled["seeds"] == [397, 401, 409, 419, 421, 431, 433, 439, 443, 449, 457, 461,
                                    463, 467, 479, 487, 491, 499, 503, 509, 521, 523, 541, 547]
@@ -1041,3 +1056,25 @@ def test_layout_fence_is_each_emulated_layouts_arena_from_its_turned_start():
         tello.set_geofence((-1.0, -1.0, 1.0, 1.0), origin=(2.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="max_height"):
         tello.set_geofence((-1.0, -1.0, 1.0, 1.0), max_height=-1.0)
+
+
+def test_the_blank_back_flights_are_their_kept_figures():
+    """docs/tello.rst, "The blank back, paired": the four seeds flown with a blank-backed
+    board against the same seeds' heliport-back flights, episode by episode, give the kept
+    figures; only the board's back differs between the two settings."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import sim_to_real
+
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    blank = sorted(res.glob("third16_blank_s*_summary.json"))
+    heliport = [res / f.name.replace("third16_blank", "third16_default") for f in blank]
+    assert len(blank) == 4 and all(f.is_file() for f in heliport)
+    got = sim_to_real.main(["--from-flights", *map(str, blank),
+                            "--against", *map(str, heliport)])[-1]
+    assert got == json.loads((res / "third16_blank.jsonl").read_text().splitlines()[-1])
+    assert got["seeds"] == [557, 563, 569, 571] and got["episodes"] == 200
+    assert got["differ"] == {"board_back": ["blank", None]}
+    assert (got["variant"]["agreed"], got["baseline"]["agreed"]) == (196, 189)
+    assert (got["variant"]["false_reached"], got["baseline"]["false_reached"]) == (3, 9)
+    ap = got["agreement_paired"]
+    assert ap["variant_only"] - ap["baseline_only"] == 196 - 189 and ap["ci95"][0] > 0
