@@ -707,6 +707,14 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         assert pooled["seeds"] == [557, 563, 569, 571, 577, 587, 593, 599, 601, 607, 613, 617,
                                    619, 631, 641, 643]
         assert len(list((res / "steps" / "third16").glob("*_steps.jsonl.gz"))) == 16
+        ref = json.loads((res / "third16_dronenav_reference.jsonl").read_text()
+                         .splitlines()[-1])  # DroneNavEnv on the same episodes
+        for key in ("episodes", "agreed", "false_reached", "success_sim"):
+            assert ref[key] == pooled[key]
+        pairs = ref["dronenav_paired"]
+        assert pairs["both"] + pairs["emulator_only"] == round(pooled["success_sim"] * 800)
+        assert pairs["both"] + pairs["dronenav_only"] == round(ref["dronenav"] * 800) == 698
+        assert ref["paired_difference_ci95"][1] < 0 and not ref["targets"]["inside_dronenav_ci"]
     if kept == "third16_with_fresh40.jsonl":  # decided by the 98.33 % interval (three looks)
         from results import wilson
 
