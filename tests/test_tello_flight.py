@@ -670,6 +670,19 @@ def test_sim_to_real_pools_the_look_around_flights(capsys):
     assert pooled["agreed"] == 577 and pooled["false_reached"] == 11
 
 
+#: Each pre-registered set of seeds: kept pool -> (the plan's seeds in its order, step-log
+#: folder, DroneNavEnv's reference on the same episodes or None, its successes).
+_PLANNED_SEEDS = {
+    "fresh16_default.jsonl": ([293, 307, 311, 313, 317, 331, 337, 347, 349, 353, 359, 367, 373,
+                               379, 383, 389], "fresh16", "fresh16_dronenav_reference.jsonl", 709),
+    "fresh24_default.jsonl": ([397, 401, 409, 419, 421, 431, 433, 439, 443, 449, 457, 461, 463,
+                               467, 479, 487, 491, 499, 503, 509, 521, 523, 541, 547], "fresh24",
+                              None, None),
+    "third16_default.jsonl": ([557, 563, 569, 571, 577, 587, 593, 599, 601, 607, 613, 617, 619,
+                               631, 641, 643], "third16", "third16_dronenav_reference.jsonl", 698),
+}
+
+
 @pytest.mark.parametrize("kept, globs, episodes, agreed, false_reached, shown", [
     ("fresh16_default.jsonl", ["fresh16_default_s*"], 800, 766, 19, False),
     ("fresh16_with_fresh8_combo.jsonl", ["fresh16_default_s*", "fresh8_combo_cap02_s*"],
@@ -703,18 +716,21 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
     assert pooled["targets"]["agreement"] and pooled["targets"]["agreement_shown"] == shown
     # the sixteen seeds of the third look alone do not show it (29 in 800, upper end 0.052)
     assert pooled["targets"]["false_reached_shown"] == (kept != "third16_default.jsonl")
-    if kept == "third16_default.jsonl":  # the plan's seeds, every one flown, step logs kept
-        assert pooled["seeds"] == [557, 563, 569, 571, 577, 587, 593, 599, 601, 607, 613, 617,
-                                   619, 631, 641, 643]
-        assert len(list((res / "steps" / "third16").glob("*_steps.jsonl.gz"))) == 16
-        ref = json.loads((res / "third16_dronenav_reference.jsonl").read_text()
-                         .splitlines()[-1])  # DroneNavEnv on the same episodes
-        for key in ("episodes", "agreed", "false_reached", "success_sim"):
-            assert ref[key] == pooled[key]
-        pairs = ref["dronenav_paired"]
-        assert pairs["both"] + pairs["emulator_only"] == round(pooled["success_sim"] * 800)
-        assert pairs["both"] + pairs["dronenav_only"] == round(ref["dronenav"] * 800) == 698
-        assert ref["paired_difference_ci95"][1] < 0 and not ref["targets"]["inside_dronenav_ci"]
+    if kept in _PLANNED_SEEDS:  # the plan's seeds, in its order, every one flown
+        seeds, steps, reference, dronenav = _PLANNED_SEEDS[kept]
+        assert pooled["seeds"] == seeds
+        assert len(list((res / "steps" / steps).glob("*_steps.jsonl.gz"))) == len(seeds)
+        if reference is not None:
+            # DroneNavEnv's reference on the same episodes: the emulator's side is the kept
+            # flights', and the paired counts add up to both sides' successes
+            ref = json.loads((res / reference).read_text().splitlines()[-1])
+            for key in ("episodes", "agreed", "false_reached", "success_sim"):
+                assert ref[key] == pooled[key]
+            n, pairs = pooled["episodes"], ref["dronenav_paired"]
+            assert pairs["both"] + pairs["emulator_only"] == round(pooled["success_sim"] * n)
+            assert pairs["both"] + pairs["dronenav_only"] == round(ref["dronenav"] * n) == dronenav
+            assert (ref["paired_difference_ci95"][1] < 0
+                    and not ref["targets"]["inside_dronenav_ci"])
     if kept == "third16_with_fresh40.jsonl":  # decided by the 98.33 % interval (three looks)
         from results import wilson
 
@@ -722,25 +738,6 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         _, hi = wilson(pooled["false_reached"], pooled["episodes"], z=2.394)
         assert round(lo, 4) == 0.9466 and lo < 0.95  # agreement: not shown, the last look
         assert round(hi, 4) == 0.0371 and hi < 0.05  # false "reached": shown
-    if kept == "fresh24_default.jsonl":  # the plan's seeds, every one flown, step logs kept
-        assert pooled["seeds"] == [397, 401, 409, 419, 421, 431, 433, 439, 443, 449, 457, 461,
-                                   463, 467, 479, 487, 491, 499, 503, 509, 521, 523, 541, 547]
-        assert len(list((res / "steps" / "fresh24").glob("*_steps.jsonl.gz"))) == 24
-    if kept == "fresh16_default.jsonl":  # the plan's seeds, in its order, every one flown
-        assert pooled["seeds"] == [293, 307, 311, 313, 317, 331, 337, 347, 349, 353, 359,
-                                   367, 373, 379, 383, 389]
-        assert len(list((res / "steps" / "fresh16").glob("*_steps.jsonl.gz"))) == 16
-        # DroneNavEnv's reference on the same episodes: the emulator's side is the kept
-        # flights', and the paired counts add up to both sides' successes
-        ref = json.loads((res / "fresh16_dronenav_reference.jsonl").read_text()
-                         .splitlines()[-1])
-        for key in ("episodes", "agreed", "false_reached", "success_sim"):
-            assert ref[key] == pooled[key]
-        pairs = ref["dronenav_paired"]
-        assert pairs["both"] + pairs["emulator_only"] == round(pooled["success_sim"] * 800)
-        assert pairs["both"] + pairs["dronenav_only"] == round(ref["dronenav"] * 800) == 709
-        assert ref["paired_difference_ci95"][1] < 0 and not ref["targets"]["inside_dronenav_ci"]
-
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
     """--from-flights A --against B: the look-around against the default on the twelve
