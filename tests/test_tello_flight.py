@@ -680,6 +680,8 @@ _PLANNED_SEEDS = {
                               None, None),
     "third16_default.jsonl": ([557, 563, 569, 571, 577, 587, 593, 599, 601, 607, 613, 617, 619,
                                631, 641, 643], "third16", "third16_dronenav_reference.jsonl", 698),
+    "printed12.jsonl": ([647, 653, 659, 661, 673, 677, 683, 691, 701, 709, 719, 727], "printed12",
+                        None, None),
 }
 
 
@@ -695,13 +697,15 @@ _PLANNED_SEEDS = {
     ("third16_default.jsonl", ["third16_default_s*"], 800, 761, 29, False),
     ("third16_with_fresh40.jsonl",  # the third and last look's headline: not shown
      ["fresh16_default_s*", "fresh24_default_s*", "third16_default_s*"], 2800, 2679, 80, False),
+    ("printed12.jsonl", ["printed12_s*"], 600, 579, 13, False),  # a printed board, one look
 ])
 def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episodes, agreed,
                                                            false_reached, shown):
     """docs/tello.rst, "Today's default on sixteen more fresh seeds": the kept flights of
     today's default (look-around and the 0.2 m vertical leg; the sixteen seeds fixed before
     they were flown, and with the eight that chose it) pool to the published figures, as
-    one setting, with the agreement target not shown and the false-"reached" one shown."""
+    one setting, with the agreement target not shown and the false-"reached" one shown; and
+    the printed-board question's twelve seeds (blank back, its own single look) likewise."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import sim_to_real
 
@@ -738,6 +742,9 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         _, hi = wilson(pooled["false_reached"], pooled["episodes"], z=2.394)
         assert round(lo, 4) == 0.9466 and lo < 0.95  # agreement: not shown, the last look
         assert round(hi, 4) == 0.0371 and hi < 0.05  # false "reached": shown
+    if kept == "printed12.jsonl":  # its own question: the blank back only, one look at 95 %
+        assert all(json.loads(f.read_text())["board_back"] == "blank" for f in data)
+        assert pooled["agreement_ci95"][0] == 0.9471 and pooled["false_reached_ci95"][1] == 0.0367
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
     """--from-flights A --against B: the look-around against the default on the twelve
