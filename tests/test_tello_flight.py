@@ -711,7 +711,8 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
 
     res = ROOT / "docs" / "_static" / "results" / "tello"
     data = sorted(f for g in globs for f in res.glob(f"{g}_summary.json"))
-    assert all(json.loads(f.read_text())["height_approach"] == 0.2 for f in data)
+    settings = [json.loads(f.read_text()) for f in data]
+    assert all(d["height_approach"] == 0.2 for d in settings)
     *seeds, pooled = sim_to_real.main(["--from-flights", *map(str, data)])
     published = json.loads((res / kept).read_text().splitlines()[-1])
     assert pooled == published
@@ -743,8 +744,9 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         assert round(lo, 4) == 0.9466 and lo < 0.95  # agreement: not shown, the last look
         assert round(hi, 4) == 0.0371 and hi < 0.05  # false "reached": shown
     if kept == "printed12.jsonl":  # its own question: the blank back only, one look at 95 %
-        assert all(json.loads(f.read_text())["board_back"] == "blank" for f in data)
+        assert all(d["board_back"] == "blank" for d in settings)
         assert pooled["agreement_ci95"][0] == 0.9471 and pooled["false_reached_ci95"][1] == 0.0367
+
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
     """--from-flights A --against B: the look-around against the default on the twelve
