@@ -191,6 +191,12 @@ def parse_args(argv=None):
     p.add_argument("--arrival-fusion", action="store_true",
                    help="with the arrival head: average its estimates over the steps that did "
                         "not move the drone across the floor (turns, climbs)")
+    p.add_argument("--climb-reading", choices=("both", "nearer"), default="both",
+                   help="with the arrival head: where a climb or descent puts the step's "
+                        "segment: between the head's readings before and after it ('both', "
+                        "default), or at one place across the floor, the reading taken nearer "
+                        "the goal point's height ('nearer'; docs/tello.rst, 'Climbs that read "
+                        "a new place')")
     p.add_argument("--final-approach", default="auto", metavar="RADIUS",
                    help="with the arrival head: when it puts the goal point within RADIUS m "
                         "and the rule has not fired, fly the last leg to its estimate with "
@@ -351,6 +357,14 @@ def parse_args(argv=None):
                                   "view": VIEW_WEIGHTS}[a.arrival_head])
         if a.arrival_head != "depth" and not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
+    if a.climb_reading != "both" and a.arrival_head in (None, "depth"):
+        p.error(f"--climb-reading {a.climb_reading} keeps one of the arrival head's readings "
+                "around a climb: it needs a head that reads frames (--arrival-head shipped, "
+                "rooms, view or a weights file; 'auto' chose "
+                f"{a.arrival_head or 'none'} here)")
+    if a.climb_reading != "both" and a.arrival_fusion:
+        p.error("--climb-reading nearer and --arrival-fusion both decide where a climb's "
+                "readings put the drone: choose one")
     if a.arrival_fusion and a.arrival_head is None:
         p.error("--arrival-fusion fuses the arrival head's estimates: it needs the head "
                 "(--arrival-head shipped or a weights file; 'auto' chose none here)")
@@ -702,6 +716,8 @@ def make_tello_env(args, cfg, tello, detector, depth, before_takeoff, layout=Non
         kw["arrival_head"] = GoalOffsetEstimator.load(args.arrival_head)
     if kw.get("arrival_head") is not None:
         kw["arrival_fusion"] = bool(getattr(args, "arrival_fusion", False))
+        if getattr(args, "climb_reading", "both") != "both":
+            kw["climb_reading"] = args.climb_reading
         kw["final_approach"] = getattr(args, "final_approach", None)
         kw["hold_radius"] = getattr(args, "hold_radius", None)
         kw["lost_board"] = getattr(args, "lost_board", "hold")
@@ -955,6 +971,8 @@ def main(argv=None) -> dict:
             summary[opt] = str(getattr(args, opt))
     if getattr(args, "arrival_fusion", False):
         summary["arrival_fusion"] = True
+    if getattr(args, "climb_reading", "both") != "both":
+        summary["climb_reading"] = args.climb_reading
     if getattr(args, "final_approach", None) is not None:
         summary["final_approach"] = args.final_approach
     if getattr(args, "hold_radius", None) is not None:
