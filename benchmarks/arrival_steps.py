@@ -35,7 +35,8 @@ and the drone's true offset from the goal point in the board's frame) and prints
 Inputs: ``steps.jsonl`` files, gzipped ones (``.jsonl.gz``) or flight folders holding
 a ``steps.jsonl``.
 
-Results: docs/tello.rst, "Step by step at the goal".
+Results: docs/tello.rst, "Step by step at the goal" (and, for ``climb_firings``, "Climbs
+that read a new place").
 """
 
 from __future__ import annotations
@@ -202,6 +203,56 @@ def threshold_counterfactual(episodes: list[list[dict]], thresholds) -> dict:
             "agree_as_flown": flown, "rows": rows}
 
 
+CLIMBS = ("ascend", "descend")
+
+
+def climb_firings(episodes: list[list[dict]], max_goal_offset: float = 0.13) -> dict:
+    """The ``climb_firings`` figure (see the module docstring).
+
+    Example:
+        >>> step = lambda action, est, sim=False, reached=False, approaches=0: {
+        ...     "action": action, "arrival_estimate": est, "sim_reached": sim,
+        ...     "reached": reached, "approaches": approaches, "true_offset": [0.0, 0.4, 0.0]}
+        >>> false = [step("forward", [0.0, -0.42, 0.02]), step("descend", [0.1, 0.0, -0.26],
+        ...                                                     reached=True)]
+        >>> fig = climb_firings([false])
+        >>> fig["false"]["n"], fig["false"]["withheld_nearer"], fig["true"]["n"]
+        (1, 1, 0)
+    """
+    rows = {True: [], False: []}
+    other = {True: 0, False: 0}
+    for ep in episodes:
+        i = next((k for k, x in enumerate(ep) if x["reached"]), None)
+        if i is None:
+            continue
+        s, prev = ep[i], ep[i - 1] if i else None
+        sim = bool(ep[-1]["sim_reached"])
+        cur, before = s["arrival_estimate"], prev and prev["arrival_estimate"]
+        if (s["action"] not in CLIMBS or cur is None or before is None
+                or s.get("approaches", 0) > prev.get("approaches", 0)):
+            other[sim] += 1
+            continue
+        near = before if abs(before[2]) <= abs(cur[2]) else cur  # the reading nearer the height
+        dz = 0.0 if before[2] * cur[2] <= 0 else min(abs(before[2]), abs(cur[2]))
+        rows[sim].append({"jump_m": math.hypot(cur[0] - before[0], cur[1] - before[1]),
+                          "dz_after_m": abs(cur[2]),
+                          "withheld": math.hypot(math.hypot(near[0], near[1]), dz)
+                          > max_goal_offset})
+
+    def summary(rs):
+        out = {"n": len(rs), "withheld_nearer": sum(r["withheld"] for r in rs)}
+        for key in ("jump_m", "dz_after_m"):
+            v = [r[key] for r in rs]
+            out[f"{key}_pct_50_90"] = ([round(float(x), 3) for x in np.percentile(v, [50, 90])]
+                                       if v else None)
+        return out
+
+    return {"figure": "climb_firings", "episodes": len(episodes),
+            "max_goal_offset_m": max_goal_offset, "false": summary(rows[False]),
+            "true": summary(rows[True]), "other_firings_false": other[False],
+            "other_firings_true": other[True]}
+
+
 def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("steps", nargs="*", metavar="STEPS",
@@ -216,7 +267,8 @@ def main(argv=None) -> list[dict]:
     if bad:
         p.error(f"--thresholds must be in (0, 1] m, got {bad}")
     episodes = load_episodes(a.steps or sorted(KEPT_LOGS.glob("*_steps.jsonl.gz")))
-    figs = figures(episodes) + [threshold_counterfactual(episodes, a.thresholds)]
+    figs = figures(episodes) + [threshold_counterfactual(episodes, a.thresholds),
+                                climb_firings(episodes)]
     for fig in figs:
         print(json.dumps(fig), flush=True)
     return figs

@@ -332,6 +332,72 @@ def test_tello_env_asks_a_head_that_can_decline():
             dry_env(arrival_head=plain, lost_board="ask")
 
 
+def test_a_climb_keeps_one_place_across_the_floor():
+    """``climb_reading="nearer"``: a descent moves nothing across the floor, so the step's
+    segment stays at one place, the reading taken nearer the goal point's height, and a
+    reading that jumped 0.3 m sideways below the head's height range does not fire (a
+    logged false "reached" of the headline flights, seed 349, episode 3). With
+    ``"both"`` (default) the slack keeps the new reading and the vertical sweep fires. A
+    climb into the height band keeps the new reading; moves across the floor are as
+    before; bad values are named."""
+    class Scripted:  # (ahead, lateral) per call, the in-view output always sure
+        in_view = True
+
+        def __init__(self, looks):
+            self.looks = iter(looks)
+
+        def __call__(self, frames):
+            return self.estimate(frames)[0]
+
+        def estimate(self, frames):
+            a, lat = next(self.looks)
+            return torch.tensor([[a, lat]]), torch.tensor([0.9])
+
+    frame, dmap, box = np.zeros((720, 960, 3), np.uint8), torch.zeros(84, 84), [0, 0, 84, 84]
+    rule = ReachRule(max_distance=1.0, max_goal_offset=0.13, goal_height=1.0)
+    before, after = (-0.148, -0.229), (0.024, 0.031)
+    got = {}
+    for climb in ("both", "nearer"):
+        env = dry_env(reach_rule=rule, arrival_head=Scripted([before, after]),
+                      lost_board="ask", segment_slack=0.2, climb_reading=climb)
+        first = env._goal_offset(True, dmap, box, 0.946, frame, 0.6)
+        assert first == pytest.approx(np.hypot(np.hypot(*before), 0.054))
+        env._last_move = (0.0, 0.0, -0.21)  # a descent: 0.264 m below the goal's height
+        got[climb] = env._goal_offset(True, dmap, box, 0.736, frame, 0.6)
+        got[climb + " estimate"] = env.arrival_estimate
+        env.close()
+    assert got["both"] == pytest.approx(np.hypot(np.hypot(*after), 0.054))
+    assert got["both"] <= rule.max_goal_offset  # fires, 0.27 m from the goal point
+    assert got["nearer"] == pytest.approx(first) and got["nearer"] > rule.max_goal_offset
+    assert got["nearer estimate"] == pytest.approx((*before, -0.264))
+    assert got["both estimate"] == pytest.approx((*after, -0.264))
+    # a climb from 0.26 m below into the band: the new reading is the nearer one
+    env = dry_env(reach_rule=rule, arrival_head=Scripted([after, (0.05, 0.02)]),
+                  lost_board="ask", segment_slack=0.2, climb_reading="nearer")
+    env._goal_offset(True, dmap, box, 1.0, frame, 0.6)
+    env._prev_offset = np.array([*after, -0.26])
+    env._prev_dz = -0.26
+    env._last_move = (0.0, 0.0, 0.25)
+    assert env._goal_offset(True, dmap, box, 0.99, frame, 0.6) == pytest.approx(
+        np.hypot(np.hypot(0.05, 0.02), 0.01))
+    env.close()
+    # a move across the floor: the segment between the two readings, as with "both"
+    for climb in ("both", "nearer"):
+        env = dry_env(reach_rule=rule, arrival_head=Scripted([(0.3, 0.0), (0.05, 0.0)]),
+                      lost_board="ask", climb_reading=climb)
+        env._goal_offset(True, dmap, box, 1.0, frame, 0.6)
+        env._last_move = (0.25, 0.0, 0.0)
+        got[climb] = env._goal_offset(True, dmap, box, 1.0, frame, 0.6)
+        env.close()
+    assert got["both"] == got["nearer"] == pytest.approx(0.05)
+    with pytest.raises(ValueError, match="climb_reading must be 'both' or 'nearer', got 'up'"):
+        dry_env(arrival_head=Scripted([]), climb_reading="up")
+    with pytest.raises(ValueError, match="it needs a head that reads frames, got NoneType"):
+        dry_env(climb_reading="nearer")
+    with pytest.raises(ValueError, match="both decide where a climb's readings"):
+        dry_env(arrival_head=Scripted([]), climb_reading="nearer", arrival_fusion=True)
+
+
 def test_a_head_asked_on_the_frame_and_its_mirror():
     """``estimate_mirrored``: the mean of the frame's reading and its mirror image's (sideways
     turned back) and the two sideways readings' spread, bit for bit what two calls of

@@ -142,6 +142,37 @@ def test_arrival_steps_on_the_kept_step_logs(tmp_path, capsys):
         assert msg in (capsys.readouterr().err + str(e.value))
 
 
+def test_climb_firings_on_the_headline_and_printed_step_logs():
+    """benchmarks/arrival_steps.py's climb_firings figure on the kept step logs
+    (docs/tello.rst, "Climbs that read a new place"): of the headline's 80 false
+    "reached" (two-faced board, 2,800 episodes), 31 fired on a climb or descent with a
+    reading on both sides, all 31 withheld by the nearer reading (and 6 of the 11 true
+    firings of that kind); with the printed board, 2 of 13; the episode counts agree
+    with the committed summaries."""
+    from tests._scripts import load_script
+
+    arrival_steps = load_script("benchmarks/arrival_steps.py")
+    steps = ROOT / "docs" / "_static" / "results" / "tello" / "steps"
+    headline = sorted(p for d in ("fresh16", "fresh24", "third16")
+                      for p in (steps / d).glob("*_steps.jsonl.gz"))
+    printed = sorted((steps / "printed12").glob("*_steps.jsonl.gz"))
+    assert (len(headline), len(printed)) == (56, 12)
+    got = {}
+    for name, logs in (("headline", headline), ("printed", printed)):
+        fig = arrival_steps.climb_firings(arrival_steps.load_episodes(logs))
+        summaries = [json.loads(Path(str(f).replace(f"steps/{f.parent.name}/", "").replace(
+            "_steps.jsonl.gz", "_summary.json")).read_text()) for f in logs]
+        assert fig["false"]["n"] + fig["other_firings_false"] == sum(
+            s["false_reached"] for s in summaries)
+        got[name] = (fig["episodes"], fig["false"]["n"], fig["false"]["withheld_nearer"],
+                     fig["other_firings_false"], fig["true"]["n"],
+                     fig["true"]["withheld_nearer"])
+        if name == "headline":
+            assert fig["false"]["jump_m_pct_50_90"] == [0.3, 0.693]
+            assert fig["true"]["jump_m_pct_50_90"] == [0.08, 0.16]
+    assert got == {"headline": (2800, 31, 31, 49, 11, 6), "printed": (600, 2, 2, 11, 3, 2)}
+
+
 def _kept_flight(res, stem: str, seed: int, option: str, value) -> list[int]:
     """A kept 50-episode flight's ``[success, agreement, false "reached", missed]`` (its
     summary says the seed and ``option``'s value it was flown with)."""
@@ -287,6 +318,10 @@ def test_mixed_perception_takes_one_model_from_the_emulator(tmp_path):
     (["--host", "192.168.10.1", "--seed", "3", "--dry-run"], "the option is the emulator's"),
     (["--arrival-head", "missing.pt", "--reach-offset", "0.2"], "'missing.pt': no such file"),
     (["--arrival-head", "none", "--arrival-fusion"], "--arrival-fusion fuses the arrival head"),
+    (["--arrival-head", "none", "--climb-reading", "nearer"],
+     "--climb-reading nearer keeps one of the arrival head's readings"),
+    (["--climb-reading", "nearer", "--arrival-fusion"], "both decide where a climb's readings"),
+    (["--climb-reading", "first"], "invalid choice: 'first'"),
     (["--arrival-head", "none", "--final-approach", "0.4"], "it needs the head"),
     (["--final-approach", "near"], "--final-approach must be a radius (m), 'auto' or 'none'"),
     (["--final-approach", "2.5"], "--final-approach must be a radius in [0.05, 1.0] m"),
