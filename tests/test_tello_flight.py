@@ -173,6 +173,28 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
     assert got == {"headline": (2800, 31, 31, 49, 11, 6), "printed": (600, 2, 2, 11, 3, 2)}
 
 
+def test_the_climb_readings_mechanism_check_is_its_kept_flights():
+    """docs/tello.rst, "Climbs that read a new place": seed 557 flown with
+    --climb-reading nearer on both boards, beside the kept default flights: the table's
+    [success, agreement, false "reached", missed], and no false firing on a climb."""
+    from tests._scripts import load_script
+
+    arrival_steps = load_script("benchmarks/arrival_steps.py")
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    got = {stem: _kept_flight(res, stem, 557, "climb_reading", value)
+           for stem, value in (("climb_nearer_s557", "nearer"),
+                               ("climb_nearer_blank_s557", "nearer"),
+                               ("third16_default_s557", None), ("third16_blank_s557", None))}
+    assert got == {"climb_nearer_s557": [36, 49, 1, 0], "climb_nearer_blank_s557": [38, 50, 0, 0],
+                   "third16_default_s557": [34, 49, 0, 1], "third16_blank_s557": [33, 50, 0, 0]}
+    for stem in ("climb_nearer_s557", "climb_nearer_blank_s557"):
+        fig = arrival_steps.climb_firings(arrival_steps.load_episodes(
+            [res / "steps" / "climb_check" / f"{stem}_steps.jsonl.gz"]))
+        assert fig["false"]["n"] == 0
+    assert json.loads((res / "climb_nearer_blank_s557_summary.json").read_text())[
+        "board_back"] == "blank"
+
+
 def _kept_flight(res, stem: str, seed: int, option: str, value) -> list[int]:
     """A kept 50-episode flight's ``[success, agreement, false "reached", missed]`` (its
     summary says the seed and ``option``'s value it was flown with)."""
