@@ -103,8 +103,9 @@ def test_trained_policy_reaches_the_goal_in_the_emulator_on_rgb_only(tmp_path):
     assert figs["false_reached"]["episodes"] == int(row["success"] and not row["success_sim"])
     # the flight folder itself is read too, and the counterfactual at a threshold no
     # estimate reaches leaves every verdict as flown
-    cf = arrival_steps.main([str(out), "--thresholds", "0.001"])[-1]
-    assert cf["figure"] == "threshold_counterfactual" and cf["episodes"] == 1
+    again = {f["figure"]: f for f in arrival_steps.main([str(out), "--thresholds", "0.001"])}
+    cf = again["threshold_counterfactual"]
+    assert cf["episodes"] == 1 and again["climb_firings"]["episodes"] == 1
     assert cf["rows"][0]["agree"] == cf["agree_as_flown"] == int(row["success"] == row["success_sim"])
 
 
