@@ -148,8 +148,9 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
     (docs/tello.rst, "Climbs that read a new place"): of the headline's 80 false
     "reached" (two-faced board, 2,800 episodes), 31 fired on a climb or descent with a
     reading on both sides, all 31 withheld by the nearer reading (and 6 of the 11 true
-    firings of that kind); with the printed board, 2 of 13; the episode counts agree
-    with the committed summaries."""
+    firings of that kind); with the printed board, 2 of 13; flown with the nearer
+    reading on twenty fresh seeds, none of 16; the episode counts agree with the
+    committed summaries."""
     from tests._scripts import load_script
 
     arrival_steps = load_script("benchmarks/arrival_steps.py")
@@ -157,9 +158,10 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
     headline = sorted(p for d in ("fresh16", "fresh24", "third16")
                       for p in (steps / d).glob("*_steps.jsonl.gz"))
     printed = sorted((steps / "printed12").glob("*_steps.jsonl.gz"))
-    assert (len(headline), len(printed)) == (56, 12)
+    nearer = sorted((steps / "printed_climb20").glob("*_steps.jsonl.gz"))
+    assert (len(headline), len(printed), len(nearer)) == (56, 12, 20)
     got = {}
-    for name, logs in (("headline", headline), ("printed", printed)):
+    for name, logs in (("headline", headline), ("printed", printed), ("nearer", nearer)):
         fig = arrival_steps.climb_firings(arrival_steps.load_episodes(logs))
         summaries = [json.loads(Path(str(f).replace(f"steps/{f.parent.name}/", "").replace(
             "_steps.jsonl.gz", "_summary.json")).read_text()) for f in logs]
@@ -171,7 +173,9 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
         if name == "headline":
             assert fig["false"]["jump_m_pct_50_90"] == [0.3, 0.693]
             assert fig["true"]["jump_m_pct_50_90"] == [0.08, 0.16]
-    assert got == {"headline": (2800, 31, 31, 49, 11, 6), "printed": (600, 2, 2, 11, 3, 2)}
+    # flown with the nearer reading (twenty fresh seeds): no false firing on a climb is left
+    assert got == {"headline": (2800, 31, 31, 49, 11, 6), "printed": (600, 2, 2, 11, 3, 2),
+                   "nearer": (1000, 0, 0, 16, 1, 0)}
 
 
 def test_the_climb_readings_mechanism_check_is_its_kept_flights():
@@ -740,6 +744,8 @@ _PLANNED_SEEDS = {
                                631, 641, 643], "third16", "third16_dronenav_reference.jsonl", 698),
     "printed12.jsonl": ([647, 653, 659, 661, 673, 677, 683, 691, 701, 709, 719, 727], "printed12",
                         None, None),
+    "printed_climb20.jsonl": ([733, 739, 743, 751, 757, 761, 769, 773, 787, 797, 809, 811, 821,
+                               823, 827, 829, 839, 853, 857, 859], "printed_climb20", None, None),
 }
 
 
@@ -756,6 +762,8 @@ _PLANNED_SEEDS = {
     ("third16_with_fresh40.jsonl",  # the third and last look's headline: not shown
      ["fresh16_default_s*", "fresh24_default_s*", "third16_default_s*"], 2800, 2679, 80, False),
     ("printed12.jsonl", ["printed12_s*"], 600, 579, 13, False),  # a printed board, one look
+    # a printed board with --climb-reading nearer: its own question, one look, shown
+    ("printed_climb20.jsonl", ["printed_climb20_s*"], 1000, 973, 16, True),
 ])
 def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episodes, agreed,
                                                            false_reached, shown):
@@ -804,6 +812,16 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
     if kept == "printed12.jsonl":  # its own question: the blank back only, one look at 95 %
         assert all(d["board_back"] == "blank" for d in settings)
         assert pooled["agreement_ci95"][0] == 0.9471 and pooled["false_reached_ci95"][1] == 0.0367
+    if kept == "printed_climb20.jsonl":  # the blank back and the nearer climb reading, one look
+        from results import wilson
+
+        assert all(d["board_back"] == "blank" and d["climb_reading"] == "nearer"
+                   for d in settings)
+        assert pooled["agreement_ci95"][0] == 0.961 and pooled["false_reached_ci95"][1] == 0.0258
+        # the 97.5 % interval beside it (the second question asked of the printed board)
+        lo, _ = wilson(pooled["agreed"], pooled["episodes"], z=2.2414)
+        _, hi = wilson(pooled["false_reached"], pooled["episodes"], z=2.2414)
+        assert round(lo, 4) == 0.9589 and lo > 0.95 and round(hi, 4) == 0.0276
 
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
