@@ -200,6 +200,38 @@ def test_the_climb_readings_mechanism_check_is_its_kept_flights():
         "board_back"] == "blank"
 
 
+def test_the_mechanism_checks_other_three_seeds_are_their_kept_flights():
+    """docs/tello.rst, "The check's other three seeds, flown after the question": seeds
+    563, 569 and 571 with --climb-reading nearer on both boards, per seed [success,
+    agreement, false "reached", missed] beside the kept default flights; the option's
+    flights have no false firing on a climb, the defaults' have three (two-faced) and one
+    (printed), all of which the nearer reading withholds."""
+    from tests._scripts import load_script
+
+    arrival_steps = load_script("benchmarks/arrival_steps.py")
+    res = ROOT / "docs" / "_static" / "results" / "tello"
+    want = {"climb_nearer": ([38, 48, 1, 1], [38, 46, 3, 1], [40, 50, 0, 0]),
+            "climb_nearer_blank": ([32, 49, 0, 1], [40, 48, 2, 0], [40, 49, 0, 1]),
+            "third16_default": ([33, 47, 3, 0], [41, 46, 3, 1], [38, 47, 3, 0]),
+            "third16_blank": ([36, 49, 1, 0], [41, 48, 2, 0], [38, 49, 0, 1])}
+    for stem, rows in want.items():
+        value = "nearer" if stem.startswith("climb") else None
+        got = [_kept_flight(res, f"{stem}_s{seed}", seed, "climb_reading", value)
+               for seed in (563, 569, 571)]
+        assert got == list(rows), stem
+    for stem, folder, climbs in (("climb_nearer", "climb_check", 0),
+                                 ("climb_nearer_blank", "climb_check", 0),
+                                 ("third16_default", "third16", 3),
+                                 ("third16_blank", "third16_blank", 1)):
+        fig = arrival_steps.climb_firings(arrival_steps.load_episodes(
+            [res / "steps" / folder / f"{stem}_s{seed}_steps.jsonl.gz"
+             for seed in (557, 563, 569, 571)]))
+        assert fig["episodes"] == 200
+        assert fig["false"]["n"] == fig["false"]["withheld_nearer"] == climbs, stem
+    assert all(json.loads((res / f"climb_nearer_blank_s{seed}_summary.json").read_text())[
+        "board_back"] == "blank" for seed in (563, 569, 571))
+
+
 def _kept_flight(res, stem: str, seed: int, option: str, value) -> list[int]:
     """A kept 50-episode flight's ``[success, agreement, false "reached", missed]`` (its
     summary says the seed and ``option``'s value it was flown with)."""
