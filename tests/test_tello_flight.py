@@ -149,8 +149,8 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
     "reached" (two-faced board, 2,800 episodes), 31 fired on a climb or descent with a
     reading on both sides, all 31 withheld by the nearer reading (and 6 of the 11 true
     firings of that kind); with the printed board, 2 of 13; flown with the nearer
-    reading on twenty fresh seeds, none of 16; the episode counts agree with the
-    committed summaries."""
+    reading on twenty fresh seeds, none of 16 (and of 12 with the two-faced board); the
+    episode counts agree with the committed summaries."""
     from tests._scripts import load_script
 
     arrival_steps = load_script("benchmarks/arrival_steps.py")
@@ -159,9 +159,11 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
                       for p in (steps / d).glob("*_steps.jsonl.gz"))
     printed = sorted((steps / "printed12").glob("*_steps.jsonl.gz"))
     nearer = sorted((steps / "printed_climb20").glob("*_steps.jsonl.gz"))
-    assert (len(headline), len(printed), len(nearer)) == (56, 12, 20)
+    twofaced = sorted((steps / "twofaced_climb20").glob("*_steps.jsonl.gz"))
+    assert (len(headline), len(printed), len(nearer), len(twofaced)) == (56, 12, 20, 20)
     got = {}
-    for name, logs in (("headline", headline), ("printed", printed), ("nearer", nearer)):
+    for name, logs in (("headline", headline), ("printed", printed), ("nearer", nearer),
+                       ("twofaced", twofaced)):
         fig = arrival_steps.climb_firings(arrival_steps.load_episodes(logs))
         summaries = [json.loads(Path(str(f).replace(f"steps/{f.parent.name}/", "").replace(
             "_steps.jsonl.gz", "_summary.json")).read_text()) for f in logs]
@@ -175,7 +177,7 @@ def test_climb_firings_on_the_headline_and_printed_step_logs():
             assert fig["true"]["jump_m_pct_50_90"] == [0.08, 0.16]
     # flown with the nearer reading (twenty fresh seeds): no false firing on a climb is left
     assert got == {"headline": (2800, 31, 31, 49, 11, 6), "printed": (600, 2, 2, 11, 3, 2),
-                   "nearer": (1000, 0, 0, 16, 1, 0)}
+                   "nearer": (1000, 0, 0, 16, 1, 0), "twofaced": (1000, 0, 0, 12, 5, 0)}
 
 
 def test_the_climb_readings_mechanism_check_is_its_kept_flights():
@@ -778,6 +780,9 @@ _PLANNED_SEEDS = {
                         None, None),
     "printed_climb20.jsonl": ([733, 739, 743, 751, 757, 761, 769, 773, 787, 797, 809, 811, 821,
                                823, 827, 829, 839, 853, 857, 859], "printed_climb20", None, None),
+    "twofaced_climb20.jsonl": ([863, 877, 881, 883, 887, 907, 911, 919, 929, 937, 941, 947, 953,
+                                967, 971, 977, 983, 991, 997, 1009], "twofaced_climb20", None,
+                               None),
 }
 
 
@@ -796,6 +801,8 @@ _PLANNED_SEEDS = {
     ("printed12.jsonl", ["printed12_s*"], 600, 579, 13, False),  # a printed board, one look
     # a printed board with --climb-reading nearer: its own question, one look, shown
     ("printed_climb20.jsonl", ["printed_climb20_s*"], 1000, 973, 16, True),
+    # the two-faced board with --climb-reading nearer: its own question, one look, shown
+    ("twofaced_climb20.jsonl", ["twofaced_climb20_s*"], 1000, 982, 12, True),
 ])
 def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episodes, agreed,
                                                            false_reached, shown):
@@ -854,6 +861,9 @@ def test_todays_defaults_fresh_seeds_are_their_kept_flights(kept, globs, episode
         lo, _ = wilson(pooled["agreed"], pooled["episodes"], z=2.2414)
         _, hi = wilson(pooled["false_reached"], pooled["episodes"], z=2.2414)
         assert round(lo, 4) == 0.9589 and lo > 0.95 and round(hi, 4) == 0.0276
+    if kept == "twofaced_climb20.jsonl":  # the emulator's own board, the nearer climb reading
+        assert all("board_back" not in d and d["climb_reading"] == "nearer" for d in settings)
+        assert pooled["agreement_ci95"][0] == 0.9717 and pooled["false_reached_ci95"][1] == 0.0209
 
 
 def test_sim_to_real_compares_two_settings_flown_on_the_same_seeds(tmp_path, capsys):
