@@ -191,12 +191,14 @@ def parse_args(argv=None):
     p.add_argument("--arrival-fusion", action="store_true",
                    help="with the arrival head: average its estimates over the steps that did "
                         "not move the drone across the floor (turns, climbs)")
-    p.add_argument("--climb-reading", choices=("both", "nearer"), default="both",
+    p.add_argument("--climb-reading", choices=("auto", "both", "nearer"), default="auto",
                    help="with the arrival head: where a climb or descent puts the step's "
-                        "segment: between the head's readings before and after it ('both', "
-                        "default), or at one place across the floor, the reading taken nearer "
-                        "the goal point's height ('nearer'; docs/tello.rst, 'Climbs that read "
-                        "a new place')")
+                        "segment: between the head's readings before and after it ('both'), "
+                        "or at one place across the floor, the reading taken nearer the goal "
+                        "point's height ('nearer'; docs/tello.rst, 'Climbs that read a new "
+                        "place'). 'auto' (default): 'nearer' with --lost-board ask (the view "
+                        "head, where the arrival target is shown with it on fresh seeds, "
+                        "both boards), else 'both'")
     p.add_argument("--final-approach", default="auto", metavar="RADIUS",
                    help="with the arrival head: when it puts the goal point within RADIUS m "
                         "and the rule has not fired, fly the last leg to its estimate with "
@@ -357,12 +359,12 @@ def parse_args(argv=None):
                                   "view": VIEW_WEIGHTS}[a.arrival_head])
         if a.arrival_head != "depth" and not Path(a.arrival_head).is_file():
             p.error(f"--arrival-head {a.arrival_head!r}: no such file")
-    if a.climb_reading != "both" and a.arrival_head in (None, "depth"):
+    if a.climb_reading == "nearer" and a.arrival_head in (None, "depth"):
         p.error(f"--climb-reading {a.climb_reading} keeps one of the arrival head's readings "
                 "around a climb: it needs a head that reads frames (--arrival-head shipped, "
                 "rooms, view or a weights file; 'auto' chose "
                 f"{a.arrival_head or 'none'} here)")
-    if a.climb_reading != "both" and a.arrival_fusion:
+    if a.climb_reading == "nearer" and a.arrival_fusion:
         p.error("--climb-reading nearer and --arrival-fusion both decide where a climb's "
                 "readings put the drone: choose one")
     if a.arrival_fusion and a.arrival_head is None:
@@ -400,6 +402,9 @@ def parse_args(argv=None):
         in_view = GoalOffsetEstimator.load(a.arrival_head).in_view
     if a.lost_board == "auto":  # ask a head that can decline; hold the board for the others
         a.lost_board = "ask" if in_view else "hold"
+    if a.climb_reading == "auto":  # where the arrival target is shown with it (docs/tello.rst)
+        a.climb_reading = "nearer" if (a.lost_board == "ask" and not a.arrival_fusion
+                                       and a.arrival_head not in (None, "depth")) else "both"
     explicit = a.segment_slack not in ("auto", "none")
     a.segment_slack = _auto_distance(p, "--segment-slack", "distance", a.segment_slack,
                                      SEGMENT_SLACK if a.lost_board == "ask" else None)

@@ -460,6 +460,30 @@ def test_the_view_head_looks_around_by_default():
     assert thesis.look_around is None and thesis.height_approach is None
 
 
+def test_the_view_head_reads_a_climb_nearer_by_default():
+    """``--climb-reading auto`` (default since 2026-12-07): ``nearer`` where the view head
+    flies (``--lost-board ask``, the setting the arrival target is shown for on fresh seeds
+    with both boards), ``both`` with the other heads, with ``--arrival-fusion`` and without a
+    head; an explicit value overrides it, and the flight's summary records the one flown."""
+    common = ["--run", str(POLICY), "--layout", "heldout", "--goal-size", "1", "0.8",
+              "--reach-offset", "0.13"]
+    assert fly_tello.parse_args([*common, "--arrival-head", "view"]).climb_reading == "nearer"
+    assert fly_tello.parse_args(["--goal-size", "1.0", "0.8"]).climb_reading == "nearer"
+    real = fly_tello.parse_args(["--run", str(POLICY), "--host", "192.168.10.1", "--dry-run"])
+    assert real.climb_reading == "nearer"  # a real drone flies the view head
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--climb-reading",
+                                 "both"]).climb_reading == "both"
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--lost-board",
+                                 "hold"]).climb_reading == "both"
+    assert fly_tello.parse_args([*common, "--arrival-head", "view", "--arrival-fusion"]
+                                ).climb_reading == "both"  # fusion decides climbs instead
+    assert fly_tello.parse_args([*common, "--arrival-head", "rooms"]).climb_reading == "both"
+    assert fly_tello.parse_args(["--run", str(POLICY)]).climb_reading == "both"  # thesis head
+    assert fly_tello.parse_args([]).climb_reading == "both"  # no head: the depth map's rule
+    assert fly_tello.parse_args(["--run", str(POLICY), "--climb-reading", "nearer"]
+                                ).climb_reading == "nearer"
+
+
 def test_a_head_that_can_decline_is_asked_by_default():
     """``--arrival-head view`` (a head with an in-view output): ``--lost-board auto`` asks it
     without the detector and ``--segment-slack auto`` checks its segments; the other heads

@@ -233,7 +233,9 @@ class TelloEnv(EnvBase):
             the floor. With a printed, blank-backed board and ``"nearer"``, 973 of 1,000
             emulated episodes on twenty fresh seeds agreed with the simulator, 0.973
             [0.961, 0.981]; with the two-faced board 982 of 1,000, 0.982 [0.972, 0.989]
-            (docs/tello.rst, "Climbs that read a new place").
+            (docs/tello.rst, "Climbs that read a new place"). ``fly_tello.py`` flies
+            ``"nearer"`` by default wherever the view head flies (``--climb-reading
+            auto``; docs/tello.rst, "The climb reading made the default").
         final_approach: with ``arrival_head``, a
             :class:`~torchrl_causal.envs.reach.FinalApproach` (or its ``radius`` in m):
             when the head puts the goal point within that radius and the rule has not
