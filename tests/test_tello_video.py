@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -113,3 +114,39 @@ def test_telloenv_flies_on_through_corrupt_video_and_reopens_a_dead_stream():
             assert not emu.flying
         finally:
             env.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork: POSIX only")
+def test_a_process_forked_beside_a_live_reader_does_not_hang():
+    """PyAV >= 17 converts frames on swscale worker threads kept in a thread-local; a process
+    forked while the reader's thread runs (a ParallelEnv started beside a flight) frees that
+    context in the child and hangs there, waiting on workers that were not forked (4 of 5
+    forks hung with the default threads). The reader converts on one thread
+    (``perception.video_path.SWS_THREADS``), so every fork exits."""
+    port = free_udp_port("127.0.0.1")
+    sender = _stream(port, n=2000, bad_at=(), delay=0.1)
+    reader = TelloFrameReader(None, f"udp://@127.0.0.1:{port}")
+    reader.start()
+    try:
+        deadline = time.time() + 10
+        while reader.decoded < 50 and time.time() < deadline:
+            time.sleep(0.05)
+        assert reader.worker.is_alive() and reader.decoded >= 50
+        hung = 0
+        for _ in range(5):
+            pid = os.fork()
+            if pid == 0:  # the child: nothing but exit (the hang was in fork itself)
+                os._exit(0)
+            t0 = time.time()
+            while time.time() - t0 < 5:
+                if os.waitpid(pid, os.WNOHANG)[0]:
+                    break
+                time.sleep(0.02)
+            else:
+                hung += 1
+                os.kill(pid, 9)
+                os.waitpid(pid, 0)
+        assert hung == 0
+    finally:
+        reader.stop()
+        sender.join()

@@ -91,6 +91,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from ..perception.goal import GoalDetector, SimGoalDetector  # noqa: E402
+from ..perception.video_path import SWS_THREADS  # noqa: E402
 
 __all__ = ["TelloEmulator", "TelloFaults", "DATAGRAM_SIZE", "free_udp_port", "djitellopy_ports"]
 
@@ -1088,7 +1089,10 @@ class TelloEmulator:
             return
         rgb, _ = self._render(self.env._renderer)
         t_render = time.perf_counter()
-        frame = self._av.VideoFrame.from_ndarray(rgb, format="rgb24")
+        # converted here, on one thread: the encoder's own conversion would use swscale's
+        # worker threads, which hang a process forked while this thread runs (SWS_THREADS)
+        frame = self._av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(
+            format="yuv420p", threads=SWS_THREADS)
         frame.pts = self.frames_sent
         if self._force_keyframe:
             from av.video.frame import PictureType

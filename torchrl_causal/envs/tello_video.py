@@ -51,6 +51,8 @@ import av
 from djitellopy import Tello
 from djitellopy.tello import BackgroundFrameRead
 
+from ..perception.video_path import SWS_THREADS
+
 __all__ = ["TelloFrameReader"]
 
 LOGGER = logging.getLogger("torchrl_causal.tello")
@@ -106,7 +108,7 @@ class TelloFrameReader(BackgroundFrameRead):
         return reader
 
     def _keep(self, frame) -> None:
-        img = frame.to_ndarray(format="rgb24")
+        img = frame.to_ndarray(format="rgb24", threads=SWS_THREADS)
         if self.with_queue:
             self.frames.append(img)
         else:

@@ -40,6 +40,13 @@ __all__ = ["X264_OPTIONS", "open_h264_encoder", "crop_resize", "VideoPath",
 #: ``(height, width)`` of the Tello's video stream.
 TELLO_STREAM_SIZE = (720, 960)
 
+#: swscale threads for every PyAV colour conversion in this package (``threads=`` of
+#: ``VideoFrame.reformat`` / ``to_ndarray``). PyAV >= 17 converts on several worker threads by
+#: default and keeps the context in a thread-local; a process forked while a thread holding one
+#: runs (a ``ParallelEnv`` started beside a live video thread) frees it in the child and hangs
+#: there, waiting on workers that were not forked. One thread costs nothing at these sizes.
+SWS_THREADS = 1
+
 
 def X264_OPTIONS(gop: int) -> dict:  # noqa: N802 - a constant-like factory
     """libx264 options of the Tello stream as the emulator sends it (``gop``: frames
@@ -188,14 +195,14 @@ class VideoPath:
         frame = self._av.VideoFrame.from_ndarray(self.jitter(rgb), format="rgb24")
         frame.pts = self.frames
         decoded = None
-        for packet in self._enc.encode(frame.reformat(format="yuv420p")):
+        for packet in self._enc.encode(frame.reformat(format="yuv420p", threads=SWS_THREADS)):
             for out in self._dec.decode(packet):
                 decoded = out
         if decoded is None:  # the decoder holds it back: flush this one frame
             raise RuntimeError("VideoPath: the H.264 round trip returned no frame "
                                "(encoder or decoder delay)")
         self.frames += 1
-        return decoded.to_ndarray(format="rgb24")
+        return decoded.to_ndarray(format="rgb24", threads=SWS_THREADS)
 
     def to_dict(self) -> dict:
         """The path's settings (for a dataset's ``meta.json``)."""
