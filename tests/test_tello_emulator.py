@@ -97,6 +97,13 @@ def _fly_every_action(emu, tello):
     assert emu.ground_truth()["land_offset_m"] == pytest.approx(tuple(offset), abs=1e-3)
     assert emu.ground_truth()["closest_goal_m"] == pytest.approx(after, abs=1e-6)
     assert not emu.flying
+    # djitellopy's own reader converts frames on swscale worker threads (PyAV >= 17): a process
+    # forked while its thread runs (a later test's ParallelEnv in this worker) hangs, so the
+    # reader is stopped while frames still arrive (after streamoff its thread would block in
+    # decode for good) and its thread joined
+    reader.stop()
+    reader.worker.join(timeout=10)
+    assert not reader.worker.is_alive()
     tello.streamoff()
 
 
@@ -289,11 +296,16 @@ def test_command_line_serves_any_client(stop):
     # PYTHONFAULTHANDLER: a SIGABRT prints every thread's stack (the diagnosis of a hang below)
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
            "PYTHONFAULTHANDLER": "1"}
+    # SIGINT ignored before the module runs, set by a wrapper rather than a preexec_fn: a
+    # preexec_fn runs Python in a fork of this worker, which hangs where a thread of an earlier
+    # test still holds PyAV's swscale workers (PyAV >= 17)
+    wrapper = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+               "sys.argv = ['tello_emulator', *sys.argv[1:]]; "
+               "runpy.run_module('torchrl_causal.envs.tello_emulator', run_name='__main__')")
     p = subprocess.Popen(
-        [sys.executable, "-m", "torchrl_causal.envs.tello_emulator", "--host", host,
+        [sys.executable, "-c", wrapper, "--host", host,
          "--command-port", str(port), "--video-size", "240x320", "--fps", "5"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         lines = []
         while not any(f"{host}:{port}" in ln for ln in lines):
