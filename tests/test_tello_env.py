@@ -285,3 +285,26 @@ def test_egomap_remembers_the_goal_where_it_does_over_dronenavenv(env, emu):
     assert float(r["goal_memory"][3]) < -0.2  # the goal is below the camera now
     ref.close()
     env.land()
+
+
+def test_takeoff_reads_its_height_from_a_state_record_sent_after_it():
+    """The take-off's height comes from a state record sent once the drone is up, not
+    from the last record before it (``h: 0``, ``tof`` the ground's). With a slow state
+    stream the ``ok`` to ``takeoff`` arrives before any record of the drone in the air;
+    read from the stale record, the dead-reckoned height sat on the ground, so the first
+    sideways move was refused as below ``min_height`` (or the first step counted
+    ``h: 0`` as a crash) and the episode ended at its first step."""
+    with TelloEmulator(fps=20, time_scale=20.0, video_size=(240, 320), state_hz=2.0,
+                       battery_drain_per_min=0.0) as emu:
+        env = TelloEnv(emu.client(), detector=emu.sim_detector(),
+                       depth_estimator=emu.sim_depth_estimator(), command_timeout=2,
+                       before_takeoff=lambda _: emu.reset_world(), verbose=False)
+        try:
+            for _ in range(3):  # each take-off after a landing, as between episodes
+                td = env.reset()
+                assert env._odom[2] == pytest.approx(emu.pose()[2], abs=0.011)
+                td = _step(env, td, ACTION_NAMES.index("left"))
+                assert not bool(td["done"]) and not bool(td["out_of_bounds"]), td
+                env.land()
+        finally:
+            env.close()

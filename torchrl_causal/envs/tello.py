@@ -765,9 +765,30 @@ class TelloEnv(EnvBase):
                                    f"{self.min_battery_takeoff:.0f}%: not taking off")
         self.flying = True  # from here on, any failure lands
         self._send("takeoff", timeout=self.takeoff_timeout)
-        st = self._state()
+        st = self._airborne_state(self._state_record())
         z = st.get("tof", 0) / 100.0 if st else 1.0
         self._odom = (0.0, 0.0, z if not self.dry_run else 1.0, 0.0)
+
+    def _airborne_state(self, at_reply) -> dict:
+        """The state once the take-off's ``ok`` has come: the first record sent after
+        ``at_reply`` (the record current at the reply) that shows the drone in the air
+        (``h > 0``), waiting up to ``command_timeout``; the latest record if none comes.
+        The record current at the reply may predate the take-off (``h: 0``, ``tof`` the
+        ground's) when the state stream is slow or the machine busy; read from it, the
+        dead-reckoned height sat on the ground and the first move was refused as below
+        ``min_height``."""
+        if self.dry_run:
+            return self._state()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < self.command_timeout:
+            record = self._state_record()
+            if record is not at_reply and float(dict(record or {}).get("h", 0)) > 0:
+                break
+            time.sleep(0.005)
+        else:
+            LOGGER.warning("Tello: no state record of the drone in the air within %d s of "
+                           "the take-off; reading the last one", self.command_timeout)
+        return self._state()
 
     def _open_video(self):
         from .tello_video import TelloFrameReader
