@@ -91,7 +91,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from ..perception.goal import GoalDetector, SimGoalDetector  # noqa: E402
-from ..perception.video_path import SWS_THREADS  # noqa: E402
+from ..perception.video_path import yuv420p_frame  # noqa: E402
 
 __all__ = ["TelloEmulator", "TelloFaults", "DATAGRAM_SIZE", "free_udp_port", "djitellopy_ports"]
 
@@ -638,8 +638,6 @@ class TelloEmulator:
             self._sim_teardown()
 
     def _sim_setup(self):
-        import av
-
         from .drone import DroneNavEnv
 
         opts = {"seed": self.seed, **self._env_options}
@@ -658,7 +656,6 @@ class TelloEmulator:
 
         H, W = self.video_size
         self._encoder = open_h264_encoder(H, W, bitrate=self.bitrate, gop=self.gop, fps=self.fps)
-        self._av = av
 
     def _sim_teardown(self):
         for r in getattr(self, "_aux_renderers", {}).values():
@@ -1089,10 +1086,7 @@ class TelloEmulator:
             return
         rgb, _ = self._render(self.env._renderer)
         t_render = time.perf_counter()
-        # converted here, on one thread: the encoder's own conversion would use swscale's
-        # worker threads, which hang a process forked while this thread runs (SWS_THREADS)
-        frame = self._av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(
-            format="yuv420p", threads=SWS_THREADS)
+        frame = yuv420p_frame(rgb)  # on one thread (perception.video_path.SWS_THREADS)
         frame.pts = self.frames_sent
         if self._force_keyframe:
             from av.video.frame import PictureType

@@ -48,6 +48,15 @@ TELLO_STREAM_SIZE = (720, 960)
 SWS_THREADS = 1
 
 
+def yuv420p_frame(rgb: np.ndarray):
+    """An ``av.VideoFrame`` in the encoders' ``yuv420p`` from uint8 RGB ``[H, W, 3]``, converted
+    on ``SWS_THREADS`` (an encoder handed RGB would convert on its own worker threads)."""
+    import av
+
+    return av.VideoFrame.from_ndarray(rgb, format="rgb24").reformat(format="yuv420p",
+                                                                   threads=SWS_THREADS)
+
+
 def X264_OPTIONS(gop: int) -> dict:  # noqa: N802 - a constant-like factory
     """libx264 options of the Tello stream as the emulator sends it (``gop``: frames
     between keyframes)."""
@@ -165,7 +174,6 @@ class VideoPath:
         h, w = self.stream_size
         self._enc = open_h264_encoder(h, w, bitrate=self.bitrate, gop=self.gop)
         self._dec = av.CodecContext.create("h264", "r")
-        self._av = av
 
     def jitter(self, rgb: np.ndarray) -> np.ndarray:
         """Exposure, blur and sensor noise, drawn from this path's generator."""
@@ -192,10 +200,10 @@ class VideoPath:
                              f"{rgb.dtype} {tuple(rgb.shape)}")
         if self._enc is None:
             self._open()
-        frame = self._av.VideoFrame.from_ndarray(self.jitter(rgb), format="rgb24")
+        frame = yuv420p_frame(self.jitter(rgb))
         frame.pts = self.frames
         decoded = None
-        for packet in self._enc.encode(frame.reformat(format="yuv420p", threads=SWS_THREADS)):
+        for packet in self._enc.encode(frame):
             for out in self._dec.decode(packet):
                 decoded = out
         if decoded is None:  # the decoder holds it back: flush this one frame

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..perception.video_path import SWS_THREADS
+from ..perception.video_path import yuv420p_frame
 
 __all__ = ["record_episodes", "OUTCOME_LABELS"]
 
@@ -185,8 +185,7 @@ class _FlightRecorder:
             self._stream.pix_fmt = "yuv420p"
             self._stream.options = {"crf": "20"}
             self.frame_size = tuple(frame.shape[:2])
-        video_frame = av.VideoFrame.from_ndarray(frame, format="rgb24").reformat(
-            format="yuv420p", threads=SWS_THREADS)  # one thread: see SWS_THREADS
+        video_frame = yuv420p_frame(frame)  # on one thread (perception.video_path.SWS_THREADS)
         for packet in self._stream.encode(video_frame):
             self._container.mux(packet)
         self.frames += 1
