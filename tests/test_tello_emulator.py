@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import socket
@@ -371,3 +372,18 @@ def test_move_noise_is_seeded_per_episode_and_independent_of_simulation_ticks():
         off = np.linalg.norm(np.subtract(noisy[:3], clean[:3]))
         assert 1e-4 < off < 0.5
         assert 1e-4 < abs(noisy[3] - clean[3]) < 20.0
+
+
+def test_a_collected_client_leaves_a_newer_one_working(emu):
+    """djitellopy's ``Tello.end()``, which its ``__del__`` calls, deletes the drone's entry
+    in a process-wide table that every client of that address reads; ``client()`` keeps
+    it, so a client collected after a newer one was made (a test's, a notebook's) does
+    not break the newer one (``KeyError`` on its next command)."""
+    old = emu.client()
+    assert old.send_command_with_return("command") == "ok"
+    new = emu.client()
+    del old
+    gc.collect()
+    assert new.send_command_with_return("battery?").strip().isdigit()
+    new.end()  # and ending one by hand leaves the entry to any later client
+    assert emu.client().send_command_with_return("command") == "ok"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 import time
 
@@ -17,7 +18,12 @@ from torchrl_causal.envs.tello import (
     TelloSafetyError,
     TelloVideoError,
 )
-from torchrl_causal.envs.tello_emulator import TelloEmulator, TelloFaults
+from torchrl_causal.envs.tello_emulator import (
+    TelloEmulator,
+    TelloFaults,
+    djitellopy_ports,
+    free_udp_port,
+)
 from torchrl_causal.perception.goal import SimGoalDetector
 from torchrl_causal.schema import ACTION_NAMES
 
@@ -308,3 +314,46 @@ def test_takeoff_reads_its_height_from_a_state_record_sent_after_it():
                 env.land()
         finally:
             env.close()
+
+
+
+def test_a_new_env_after_close_flies_on_the_same_drone_and_video_port(emu):
+    """A second ``TelloEnv`` for the same drone in one process (a notebook's next flight;
+    a real Tello always streams to port 11111) flies, even when the first env's
+    ``djitellopy.Tello`` is collected after the second was made: djitellopy's ``end()``
+    (its ``__del__``) deleted the drone's entry in its process-wide table, and the new
+    env's next command raised ``KeyError``. The first reader, blocked in ``demux`` after
+    ``streamoff``, ends at the first packet after its ``stop()``."""
+    from djitellopy import Tello
+
+    port = free_udp_port()
+
+    def make():  # a plain djitellopy.Tello, as for a real drone (emu.client() protects its own)
+        _, state_port = djitellopy_ports()
+        emu.set_client_ports(state_port=state_port, video_port=port)
+        tello = Tello(host=emu.host, retry_count=1, vs_udp=port)
+        tello.address = emu.address
+        assert "end" not in vars(tello)
+        return TelloEnv(tello, detector=emu.sim_detector(),
+                        depth_estimator=emu.sim_depth_estimator(), command_timeout=2,
+                        frame_timeout=5.0, before_takeoff=lambda _: emu.reset_world(),
+                        verbose=False)
+
+    first = make()
+    try:
+        first.reset()
+    finally:
+        first.close()
+    old_reader = first._frame_reader
+    second = make()
+    del first
+    gc.collect()  # the first env's Tello goes now, after the second was made
+    try:
+        td = second.reset()
+        td = _step(second, td, ACTION_NAMES.index("turn_left"))
+        assert not bool(td["done"])
+        assert second._frame_reader.decoded > 0 and second._frame_reader.error is None
+    finally:
+        second.close()
+    old_reader.worker.join(timeout=5.0)
+    assert not old_reader.alive

@@ -69,6 +69,7 @@ import logging
 import math
 import threading
 import time
+import types
 import weakref
 from typing import Callable
 
@@ -178,6 +179,35 @@ def _num(name, value, low=None, strict=False):
         cond = "" if low is None else f" {'>' if strict else '>='} {low}"
         raise ValueError(f"{name} must be a finite number{cond}, got {value!r}")
     return float(value)
+
+
+def _keep_host_registered(tello) -> None:
+    """Makes this ``djitellopy.Tello``'s ``end()`` (which its ``__del__`` calls) leave the
+    drone's entry in djitellopy's process-wide ``drones`` table.
+
+    That entry holds the reply queue and the state records that *every* ``Tello`` object
+    of the address reads. djitellopy's ``end()`` deletes it, so an old object collected
+    after a new one was made for the same drone (``env = TelloEnv(Tello())`` run twice in
+    a notebook, or two flights in one process) broke the new one: its next command or
+    state read raised ``KeyError`` (the host), in the air. Other objects are left alone.
+    """
+    try:
+        import djitellopy.tello as dt
+    except ImportError:  # pragma: no cover - djitellopy is a dependency
+        return
+    if not isinstance(tello, dt.Tello) or "end" in vars(tello):
+        return
+    plain_end = type(tello).end
+
+    def end(self):
+        entry = dt.drones.get(self.address[0])
+        try:
+            plain_end(self)
+        finally:
+            if entry is not None:
+                dt.drones.setdefault(self.address[0], entry)
+
+    tello.end = types.MethodType(end, tello)
 
 
 class TelloEnv(EnvBase):
@@ -586,6 +616,8 @@ class TelloEnv(EnvBase):
             from djitellopy import Tello
 
             tello = Tello(host=host, retry_count=1)
+        if tello is not None:
+            _keep_host_registered(tello)
         self.tello = tello
         self.sent: list[str] = []
         self.last_frame: np.ndarray | None = None

@@ -486,7 +486,10 @@ class TelloEmulator:
 
         Sets djitellopy's process-wide ports first (:func:`djitellopy_ports`),
         tells the emulator where the client's state and video sockets are, and
-        sets the client's ``address`` to the emulator's command port.
+        sets the client's ``address`` to the emulator's command port. Its ``end()``
+        (and so its collection) leaves djitellopy's per-address entry in place, so an
+        old client collected later does not break a newer one (as ``TelloEnv`` does
+        with any ``Tello`` it is given).
 
         Args:
             retry_count: djitellopy's attempts per control command.
@@ -499,6 +502,9 @@ class TelloEmulator:
         self.set_client_ports(state_port=state, video_port=vport)
         tello = Tello(host=self.host, retry_count=int(retry_count), vs_udp=vport)
         tello.address = (self.host, self.command_port)
+        from .tello import _keep_host_registered
+
+        _keep_host_registered(tello)  # collecting it must not unregister a newer client
         return tello
 
     # ------------------------------------------------------------------ queries
