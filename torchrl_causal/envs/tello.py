@@ -191,10 +191,8 @@ def _keep_host_registered(tello) -> None:
     a notebook, or two flights in one process) broke the new one: its next command or
     state read raised ``KeyError`` (the host), in the air. Other objects are left alone.
     """
-    try:
-        import djitellopy.tello as dt
-    except ImportError:  # pragma: no cover - djitellopy is a dependency
-        return
+    import djitellopy.tello as dt
+
     if not isinstance(tello, dt.Tello) or "end" in vars(tello):
         return
     plain_end = type(tello).end
@@ -809,18 +807,23 @@ class TelloEnv(EnvBase):
         ground's) when the state stream is slow or the machine busy; read from it, the
         dead-reckoned height sat on the ground and the first move was refused as below
         ``min_height``."""
-        if self.dry_run:
-            return self._state()
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < self.command_timeout:
-            record = self._state_record()
-            if record is not at_reply and float(dict(record or {}).get("h", 0)) > 0:
-                break
-            time.sleep(0.005)
-        else:
+        if not self.dry_run and not self._await_state(at_reply, self.command_timeout,
+                                                       airborne=True):
             LOGGER.warning("Tello: no state record of the drone in the air within %d s of "
                            "the take-off; reading the last one", self.command_timeout)
         return self._state()
+
+    def _await_state(self, since, timeout: float, airborne: bool = False) -> bool:
+        """Waits up to ``timeout`` s for a state record other than ``since`` (djitellopy
+        makes one per message), showing the drone in the air (``h > 0``) if ``airborne``;
+        returns whether one came."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            record = self._state_record()
+            if record is not since and (not airborne or float((record or {}).get("h", 0)) > 0):
+                return True
+            time.sleep(0.005)
+        return False
 
     def _open_video(self):
         from .tello_video import TelloFrameReader
@@ -1105,9 +1108,7 @@ class TelloEnv(EnvBase):
         if self.final_approach is not None and self._state_since is not None:
             # the approach turns its dead reckoning by the IMU's yaw: a state record sent
             # before the move ended may hold the yaw before a turn
-            t0 = time.monotonic()
-            while self._state_record() is self._state_since and time.monotonic() - t0 < 0.5:
-                time.sleep(0.005)
+            self._await_state(self._state_since, timeout=0.5)
         self._state_since = None
         st = self._state()
         alt = float(st.get("tof", st.get("h", 0))) / 100.0 if st else 0.0
