@@ -197,7 +197,7 @@ def _inside(layout, x, y, margin=0.15) -> bool:
 
 
 def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0),
-               obstacle_distance=(0.25, 1.5)):
+               obstacle_distance=(0.25, 1.5), obstacle_yaw_spread=0.5):
     """``(x, y, z, yaw_deg)`` for a view of ``kind`` (falls back to the start pose)."""
     g = np.asarray(layout.goal_center, dtype=np.float64)
     xmin, ymin, xmax, ymax = layout.arena
@@ -219,7 +219,7 @@ def _draw_pose(rng, layout, kind: str, hfov_deg: float, goal_distance=(0.5, 9.0)
             top = o.center[2] + o.half_size[2]
             z = rng.uniform(0.3, max(min(top, ztop), 0.35))
             bearing = math.degrees(math.atan2(o.center[1] - y, o.center[0] - x))
-            yaw = bearing + rng.uniform(-0.5, 0.5) * half
+            yaw = bearing + rng.uniform(-obstacle_yaw_spread, obstacle_yaw_spread) * half
             if not _inside(layout, x, y, margin=0.1):
                 continue
         elif kind == "goal":
@@ -332,6 +332,7 @@ def render_views(
     goal_size: Sequence[float] | None = None,
     obstacle_frac: float = 0.0,
     obstacle_distance: Sequence[float] = (0.25, 1.5),
+    obstacle_yaw_spread: float = 0.5,
 ) -> Iterator[View]:
     """Renders ``n`` views of ``split``, lazily (see the module docstring).
 
@@ -372,6 +373,11 @@ def render_views(
             segmentation sees it, usually none.
         obstacle_distance: ``(low, high)`` horizontal distance (m) of
             ``"obstacle"`` views from the obstacle's surface, log-uniform.
+        obstacle_yaw_spread: how far an ``"obstacle"`` view's heading strays
+            from the bearing of the obstacle's centre, as a fraction of half the
+            horizontal field of view (uniform in +-``spread``; default 0.5, the
+            obstacle ahead; above 1 the obstacle is often at the image's side
+            edge, the close-ups a sideways pass or a turn beside it shows).
 
     Yields:
         :class:`View` objects.
@@ -418,6 +424,10 @@ def render_views(
     if not 0.2 <= olo < ohi:
         raise ValueError(f"obstacle_distance must be (low, high) with 0.2 <= low < high "
                          f"(the drone's clearance is 0.18 m), got {obstacle_distance!r}")
+    if isinstance(obstacle_yaw_spread, bool) or not isinstance(obstacle_yaw_spread, (int, float)) \
+            or not 0.0 <= obstacle_yaw_spread <= 3.0:
+        raise ValueError(f"obstacle_yaw_spread must be a number in [0, 3] (fractions of half "
+                         f"the field of view), got {obstacle_yaw_spread!r}")
     from ..envs.layouts import check_goal_size
 
     goal_size = check_goal_size(goal_size)
@@ -434,7 +444,7 @@ def render_views(
         split, n, seed, (h, w), layout_seed, goal_absent_frac, start_frac, views_per_layout,
         min_fraction, float(fov_deg), float(max_depth), max_tilt_deg,
         bool(randomize_appearance), start, (lo, hi), video_path, goal_size,
-        obstacle_frac, (olo, ohi),
+        obstacle_frac, (olo, ohi), float(obstacle_yaw_spread),
     )
 
 
@@ -442,6 +452,7 @@ def _render(
     split, n, seed, image_size, layout_seed, absent_frac, start_frac, per_layout,
     min_fraction, fov_deg, max_depth, max_tilt, randomize, start, goal_distance=(0.5, 9.0),
     video_path=None, goal_size=None, obstacle_frac=0.0, obstacle_distance=(0.25, 1.5),
+    obstacle_yaw_spread=0.5,
 ) -> Iterator[View]:
     from ..envs.drone import DroneNavEnv
     from ..envs.scene import SceneRenderer
@@ -496,7 +507,7 @@ def _render(
             else:
                 kind = "goal"
             x, y, z, yaw = _draw_pose(rng, env.layout, kind, env.hfov_deg, goal_distance,
-                                      obstacle_distance)
+                                      obstacle_distance, obstacle_yaw_spread)
             pitch, roll = rng.uniform(-max_tilt, max_tilt, size=2) if max_tilt > 0 else (0.0, 0.0)
             if randomize:
                 appearance.apply(rng)
@@ -904,12 +915,17 @@ def main(argv: Sequence[str] | None = None) -> dict:
     p.add_argument("--obstacle-distance", type=float, nargs=2, default=(0.25, 1.5),
                    metavar=("LOW", "HIGH"),
                    help="distance range (m) of obstacle close-ups from the obstacle's surface")
+    p.add_argument("--obstacle-yaw-spread", type=float, default=0.5, metavar="F",
+                   help="obstacle close-ups' heading off the obstacle's centre, up to F x half "
+                        "the field of view (default 0.5: ahead; 1.6: often at the side edge)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     extra = {}
     if a.obstacle_frac:
         extra["obstacle_frac"] = a.obstacle_frac
         extra["obstacle_distance"] = tuple(a.obstacle_distance)
+        if a.obstacle_yaw_spread != 0.5:
+            extra["obstacle_yaw_spread"] = a.obstacle_yaw_spread
     if a.goal_size is not None:
         extra["goal_size"] = tuple(a.goal_size)
     if a.video_path:
