@@ -5,6 +5,8 @@
     python benchmarks/depth_range_oracle.py                        # T = 0, 1, inf; seeds 733, 741
     python benchmarks/depth_range_oracle.py --below 0 0.6 1 2 3 inf --seeds 749 757 --episodes 50
     python benchmarks/depth_range_oracle.py --below 0 --ego-map max_range=2.5   # a map option too
+    python benchmarks/depth_range_oracle.py --below 0 --depth-weights W.pt      # candidate MonoDepth
+    python benchmarks/depth_range_oracle.py --pool runs/*.jsonl   # pair arms flown in several runs
 
 The shipped generalist flies :class:`~torchrl_causal.envs.DroneNavEnv` as
 ``recipes/fly_tello.py --compare-sim --compare-perception rgb`` flies it (held-out
@@ -22,9 +24,12 @@ depth, which no drone has. It swaps the step of
 :class:`~torchrl_causal.transforms.EstimatedDepth` for one that also reads the ``depth``
 the env wrote before the estimate replaces it (:func:`oracle_depth` does the fusion).
 
-Prints one JSON object per arm and seed (``{"figure": "depth_range_oracle", "below",
-"seed", "success", "n", "ci95", "mean_length", "success_per_episode"}``), then one per arm
-pooled over the seeds with its paired difference from the first arm
+An arm is ``--below``'s T with ``--depth-weights`` (candidate MonoDepth weights in place
+of the shipped ones, ``recipes/fly_tello.py --depth-weights``) and ``--ego-map`` options.
+Prints one JSON object per arm and seed (``{"figure": "depth_range_oracle", "arm",
+"below", "depth_weights", "ego_map", "seed", "success", "n", "ci95", "mean_length",
+"success_per_episode"}``), then one per arm pooled over the seeds all arms flew, with its
+paired difference from the first arm
 (``{"figure": "depth_range_oracle_pooled", ...}``: ``gains`` / ``losses`` are the
 episodes only this arm / only the first arm finished, ``paired_difference`` the
 difference of proportions with its 95 % interval ``paired_ci95``). Data of docs/tello.rst's "Which depth
@@ -94,12 +99,24 @@ def truth_below(below: float):
         EstimatedDepth._call, EstimatedDepth.forward = saved
 
 
-def fly(below: float, seed: int, episodes: int, out: Path, ego_map: dict) -> dict:
+def arm_name(below: float, depth_weights=None, ego_map=None) -> str:
+    """The arm's label: ``below=T`` and, where set, the weights file's name and map options."""
+    parts = [f"below={below:g}"]
+    if depth_weights is not None:
+        parts.append(f"depth={Path(depth_weights).name}")
+    parts += [f"{k}={v}" for k, v in sorted((ego_map or {}).items())]
+    return ", ".join(parts)
+
+
+def fly(below: float, seed: int, episodes: int, out: Path, ego_map: dict,
+        depth_weights=None) -> dict:
     """One arm on one seed's episodes (fly_tello's ``--compare-sim`` reference on RGB)."""
     argv = ["--run", str(policy_dir("generalist")), "--episodes", str(episodes), "--noise",
             "--seed", str(seed), "--compare-sim", str(episodes), "--compare-perception", "rgb",
             "--goal-size", "1.0", "0.8", "--board-back", "blank", "--layout", "heldout",
             "--no-video", "--out", str(out)]
+    if depth_weights is not None:
+        argv += ["--depth-weights", str(depth_weights)]
     args = fly_tello.parse_args(argv)
     base = fly_tello.ego_map_options
     fly_tello.ego_map_options = lambda a: {**base(a), **ego_map}
@@ -109,7 +126,9 @@ def fly(below: float, seed: int, episodes: int, out: Path, ego_map: dict) -> dic
             ref = fly_tello.dronenav_reference(args)
     finally:
         fly_tello.ego_map_options = base
-    return {"figure": "depth_range_oracle", "below": below, "ego_map": ego_map, "seed": seed,
+    return {"figure": "depth_range_oracle", "arm": arm_name(below, depth_weights, ego_map),
+            "below": below, "depth_weights": None if depth_weights is None else str(depth_weights),
+            "ego_map": ego_map, "seed": seed,
             "success": ref["rate"], "n": ref["n"], "ci95": ref["ci95"],
             "mean_length": round(ref["mean_length"], 2),
             "success_per_episode": ref["success_per_episode"],
@@ -134,23 +153,26 @@ def paired(a: list[int], b: list[int]) -> dict:
 
 def pooled(rows: list[dict]) -> list[dict]:
     """One object per arm over its seeds, each paired with the first arm's episodes."""
-    arms: dict[float, dict[int, list[int]]] = {}
+    arms: dict[str, dict[int, list[int]]] = {}
     for r in rows:
-        arms.setdefault(r["below"], {})[r["seed"]] = r["success_per_episode"]
+        arm = r.get("arm") or arm_name(r["below"], r.get("depth_weights"), r.get("ego_map"))
+        if r["seed"] in arms.get(arm, {}):
+            raise ValueError(f"arm {arm!r} flew seed {r['seed']} twice")
+        arms.setdefault(arm, {})[r["seed"]] = r["success_per_episode"]
     order = list(arms)
     seeds = sorted(set.intersection(*(set(v) for v in arms.values())))
     if not seeds:
         raise ValueError("the arms share no seed to pool")
     first = [x for s in seeds for x in arms[order[0]][s]]
     out = []
-    for below in order:
-        eps = [x for s in seeds for x in arms[below][s]]
+    for arm in order:
+        eps = [x for s in seeds for x in arms[arm][s]]
         k = sum(eps)
         lo, hi = wilson(k, len(eps))
-        out.append({"figure": "depth_range_oracle_pooled", "below": below, "seeds": seeds,
+        out.append({"figure": "depth_range_oracle_pooled", "arm": arm, "seeds": seeds,
                     "success": round(k / len(eps), 4), "n": len(eps),
                     "ci95": [round(lo, 4), round(hi, 4)],
-                    "against_below": order[0], **paired(eps, first)})
+                    "against": order[0], **paired(eps, first)})
     return out
 
 
@@ -180,16 +202,36 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--episodes", type=int, default=50, help="episodes per seed")
     p.add_argument("--ego-map", type=_map_option, nargs="*", default=[], metavar="KEY=VALUE",
                    help="EgoMap options added to the flight's (e.g. max_range=2.5)")
+    p.add_argument("--depth-weights", default=None, metavar="PT",
+                   help="MonoDepth weights to fly in place of the shipped ones")
+    p.add_argument("--pool", nargs="+", default=None, metavar="JSONL",
+                   help="fly nothing: pool the per-seed objects of earlier runs (the first "
+                        "arm met is the pairing's reference)")
     p.add_argument("--out", default="outputs/depth_range_oracle")
     a = p.parse_args(argv)
     if a.episodes < 1:
         p.error(f"--episodes must be >= 1, got {a.episodes}")
+    if a.depth_weights is not None and not Path(a.depth_weights).is_file():
+        p.error(f"--depth-weights {a.depth_weights!r} is not a file")
+    if a.pool is not None:
+        rows = []
+        for f in a.pool:
+            if not Path(f).is_file():
+                p.error(f"--pool {f!r} is not a file")
+            rows += [r for r in map(json.loads, Path(f).read_text().splitlines())
+                     if r.get("figure") == "depth_range_oracle"]
+        summary = pooled(rows)
+        for s in summary:
+            print(json.dumps(s), flush=True)
+        return summary
     torch.set_num_threads(1)
     rows = []
     for below in a.below:
         for seed in a.seeds:
-            r = fly(below, seed, a.episodes, Path(a.out) / f"below_{below:g}_s{seed}",
-                    dict(a.ego_map))
+            tag = f"below_{below:g}" + ("" if a.depth_weights is None else
+                                       f"_{Path(a.depth_weights).stem}")
+            r = fly(below, seed, a.episodes, Path(a.out) / f"{tag}_s{seed}",
+                    dict(a.ego_map), a.depth_weights)
             print(json.dumps(r), flush=True)
             rows.append(r)
     summary = pooled(rows)

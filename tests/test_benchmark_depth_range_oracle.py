@@ -1,5 +1,6 @@
 """benchmarks/depth_range_oracle.py: MonoDepth with the simulator's depth below T, paired arms."""
 
+import json
 import math
 
 import pytest
@@ -55,15 +56,38 @@ def test_pairing_counts_the_discordant_episodes():
             for t, s, e in ((0.0, 1, [1, 0]), (0.0, 2, [0, 0]), (math.inf, 1, [1, 1]),
                             (math.inf, 2, [1, 0]))]
     first, best = oracle.pooled(rows)
+    assert (first["arm"], best["arm"]) == ("below=0", "below=inf")
     assert (first["success"], first["n"], first["paired_difference"]) == (0.25, 4, 0.0)
     assert (best["success"], best["gains"], best["losses"]) == (0.75, 2, 0)
     assert best["ci95"][0] < 0.75 < best["ci95"][1]  # its own Wilson interval, kept apart
+    with pytest.raises(ValueError, match="twice"):
+        oracle.pooled(rows + rows[:1])
+    weighted = dict(rows[0], depth_weights="/x/cand.pt")
+    assert oracle.pooled(rows[:2] + [weighted, dict(weighted, seed=2)])[1]["arm"] == \
+        "below=0, depth=cand.pt"
+
+
+def test_pool_pairs_arms_from_several_runs(tmp_path, capsys):
+    a = tmp_path / "a.jsonl"
+    b = tmp_path / "b.jsonl"
+    a.write_text(json.dumps({"figure": "depth_range_oracle", "arm": "below=0", "below": 0.0,
+                             "seed": 3, "success_per_episode": [0, 1, 0, 1]}) + "\n")
+    b.write_text(json.dumps({"figure": "depth_range_oracle", "arm": "below=1", "below": 1.0,
+                             "seed": 3, "success_per_episode": [1, 1, 0, 1]}) + "\n"
+                 + json.dumps({"figure": "depth_range_oracle_pooled"}) + "\n")
+    out = oracle.main(["--pool", str(a), str(b)])
+    assert [o["arm"] for o in out] == ["below=0", "below=1"]
+    assert (out[1]["gains"], out[1]["losses"], out[1]["success"]) == (1, 0, 0.75)
+    printed = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert printed == out
 
 
 def test_bad_options_are_named_before_any_flight(capsys):
     for argv, word in ((["--below", "-1"], "--below"), (["--below", "x"], "--below"),
                        (["--ego-map", "max_range"], "--ego-map"),
-                       (["--episodes", "0"], "--episodes")):
+                       (["--episodes", "0"], "--episodes"),
+                       (["--depth-weights", "/nonexistent.pt"], "--depth-weights"),
+                       (["--pool", "/nonexistent.jsonl"], "--pool")):
         with pytest.raises(SystemExit):
             oracle.main(argv)
         assert word in capsys.readouterr().err
