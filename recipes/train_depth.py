@@ -27,6 +27,10 @@ fine-tune that adds obstacle close-ups (``--obstacle-frac 1``)::
 H200 from a working-resolution cache of the same data (``benchmarks/gpu_depth/``) and
 evaluated here with ``--evaluate-only``; its sidecar records every command, the first
 stage's under ``init_sidecar``.
+``--evaluate-only W`` alone prints W's held-out figures on ``--data`` and writes
+nothing; with ``--out W2`` it also writes the weights there with the figures. (Until
+2026-12-08 ``--out`` defaulted to the package's file here too, so evaluating the shipped
+weights on another set replaced their recorded figures.)
 
 Checkpoints go to ``--run-dir`` after every epoch (``last.pt``); ``--resume``
 continues an interrupted run from there (same options).
@@ -73,7 +77,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--init", default=None,
                    help="fine-tune: start from these MonoDepth weights (their network "
                         "replaces --widths/--decoder)")
-    p.add_argument("--out", default=str(DEFAULT_WEIGHTS), help="weights file to write (+ .json sidecar)")
+    p.add_argument("--out", default=None,
+                   help="weights file to write (+ .json sidecar; default: the package's shipped "
+                        "MonoDepth file; with --evaluate-only: none, the figures are only printed)")
     p.add_argument("--run-dir", default="outputs/depth_run", help="checkpoints and history")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/last.pt")
     p.add_argument("--epochs", type=int, default=12)
@@ -105,8 +111,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--evaluate-only", default=None, metavar="WEIGHTS",
                    help="train nothing: evaluate these weights (trained elsewhere, e.g. on a GPU "
                         "box) on the held-out sets of --data, calibrate their arrival range, and "
-                        "write them with the figures to --out; the training record in the "
-                        "weights is kept")
+                        "print the figures; with --out, also write the weights with the figures "
+                        "there (the training record in the weights is kept)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     for name in ("epochs", "batch_size", "threads"):
@@ -134,6 +140,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                 )
     if a.evaluate_only is not None and not Path(a.evaluate_only).is_file():
         raise ValueError(f"--evaluate-only {a.evaluate_only!r}: no such weights file")
+    if a.out is None and a.evaluate_only is None:  # training writes the package's file
+        a.out = str(DEFAULT_WEIGHTS)
     if a.init is not None and not Path(a.init).is_file():
         raise ValueError(f"--init {a.init!r}: no such weights file")
     if a.reach_poses != 0 and a.reach_poses < 10:
@@ -312,8 +320,10 @@ def _atomic_save(obj, path: Path):
 
 
 def evaluate_only(a, argv, roots: list[Path], data_meta: dict) -> dict:
-    """``--evaluate-only``: the held-out figures of weights trained elsewhere, written
-    with them (their training record kept, the figures and this command added)."""
+    """``--evaluate-only``: the held-out figures of weights trained elsewhere, printed, and
+    with ``--out`` written with them (their training record kept, the figures and this
+    command added). Without ``--out`` nothing is written: evaluating the shipped weights on
+    another set never replaces the package's file or its recorded figures."""
     est = MonoDepth.load(a.evaluate_only)
     record = dict(est.meta)
     history = read_sidecar(a.evaluate_only).get("history")
@@ -325,10 +335,13 @@ def evaluate_only(a, argv, roots: list[Path], data_meta: dict) -> dict:
         evaluated_by=_command(argv),
         evaluated_with_torch=str(torch.__version__),
     )
-    out = est.save(a.out, meta=record)
-    out.with_suffix(".json").write_text(json.dumps({**record, "history": history}, indent=1) + "\n")
-    result = {"weights": str(out), "bytes": out.stat().st_size, "metrics": record["metrics"],
+    result = {"weights": None, "evaluated": str(a.evaluate_only), "metrics": record["metrics"],
               "ms_per_frame_cpu": timing}
+    if a.out is not None:
+        out = est.save(a.out, meta=record)
+        out.with_suffix(".json").write_text(json.dumps({**record, "history": history}, indent=1)
+                                            + "\n")
+        result.update(weights=str(out), bytes=out.stat().st_size)
     print(json.dumps(result))
     return result
 

@@ -361,6 +361,15 @@ def test_recipe_trains_resumes_exactly_and_writes_weights(tmp_path, capsys):
         assert ev["metrics"]["test_60x80"][k] == pytest.approx(full["metrics"]["test_60x80"][k], rel=1e-3), k
     assert eside["epochs"] == 2 and eside["command"] == side["command"] and "--evaluate-only" in eside["evaluated_by"]
     assert eside["history"] == side["history"] and e.meta["best_epoch"] == side["best_epoch"]
+    # without --out, evaluating writes nothing: the weights and their recorded figures stay
+    before = {p: p.read_bytes() for p in (tmp_path / "a.pt", tmp_path / "a.json")}
+    files = set(tmp_path.iterdir())
+    only = train_depth.main(["--data", str(data), "--evaluate-only", str(tmp_path / "a.pt"),
+                             "--n-test-84", "0", "--reach-poses", "0"])
+    assert only["weights"] is None and only["evaluated"] == str(tmp_path / "a.pt")
+    timing = lambda m: {k: v for k, v in m.items() if k != "ms_per_frame"}  # noqa: E731
+    assert timing(only["metrics"]["test_60x80"]) == timing(ev["metrics"]["test_60x80"])
+    assert set(tmp_path.iterdir()) == files and all(p.read_bytes() == b for p, b in before.items())
     with pytest.raises(ValueError, match="--evaluate-only .*no such weights file"):
         train_depth.main(["--data", str(data), "--evaluate-only", str(tmp_path / "missing.pt")])
     with pytest.raises(ValueError, match="other options"):
