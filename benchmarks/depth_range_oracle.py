@@ -62,12 +62,18 @@ from torchrl_causal.pretrained import policy_dir  # noqa: E402
 from torchrl_causal.transforms.estimated_depth import EstimatedDepth  # noqa: E402
 
 
-def oracle_depth(true: torch.Tensor, estimate: torch.Tensor, below: float) -> torch.Tensor:
-    """The estimate, with the true depth wherever the truth is below ``below`` metres
-    (``0``: the estimate as it is; ``inf``: the truth everywhere)."""
+def check_below(below) -> float:
+    """``below`` as a float, or a ValueError naming it: a number >= 0 (m) or inf."""
     if not (isinstance(below, (int, float)) and not isinstance(below, bool) and below >= 0
             and not math.isnan(below)):
         raise ValueError(f"below must be a number >= 0 (m) or inf, got {below!r}")
+    return float(below)
+
+
+def oracle_depth(true: torch.Tensor, estimate: torch.Tensor, below: float) -> torch.Tensor:
+    """The estimate, with the true depth wherever the truth is below ``below`` metres
+    (``0``: the estimate as it is; ``inf``: the truth everywhere)."""
+    below = check_below(below)
     if true.shape != estimate.shape:
         raise ValueError(f"true depth {tuple(true.shape)} and estimate "
                          f"{tuple(estimate.shape)} differ in shape")
@@ -80,7 +86,7 @@ def oracle_depth(true: torch.Tensor, estimate: torch.Tensor, below: float) -> to
 def truth_below(below: float):
     """Within the block, every :class:`EstimatedDepth` keeps the env's own ``depth`` where
     it is below ``below`` metres (see :func:`oracle_depth`)."""
-    oracle_depth(torch.zeros(1), torch.zeros(1), below)  # the value, named before any flight
+    below = check_below(below)  # named before any flight
 
     def _call(self, td):
         est = self.estimate(td.get(self.in_keys[0]))
@@ -178,12 +184,9 @@ def pooled(rows: list[dict]) -> list[dict]:
 
 def _below(text: str) -> float:
     try:
-        value = float(text)
+        return check_below(float(text))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--below takes numbers (m) or inf, got {text!r}")
-    if math.isnan(value) or value < 0:
         raise argparse.ArgumentTypeError(f"--below takes numbers >= 0 (m) or inf, got {text!r}")
-    return value
 
 
 def _map_option(text: str) -> tuple[str, str]:

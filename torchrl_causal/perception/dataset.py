@@ -924,8 +924,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if a.obstacle_frac:
         extra["obstacle_frac"] = a.obstacle_frac
         extra["obstacle_distance"] = tuple(a.obstacle_distance)
-        if a.obstacle_yaw_spread != 0.5:
-            extra["obstacle_yaw_spread"] = a.obstacle_yaw_spread
+    if a.obstacle_yaw_spread != 0.5:  # checked by render_views, before anything is rendered
+        extra["obstacle_yaw_spread"] = a.obstacle_yaw_spread
     if a.goal_size is not None:
         extra["goal_size"] = tuple(a.goal_size)
     if a.video_path:
